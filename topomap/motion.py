@@ -1,0 +1,68 @@
+"""Vehicle kinds and velocity commands shared by the servo (which computes them) and any vehicle
+(the simulator or a real robot) that executes them — THESIS.md section 1, eq. 1.7-1.8.
+
+The commanded input is ``u = (v_f, v_h, omega)``: forward and sideways (leftward) speed in the
+vehicle frame and turning rate. A unicycle has ``v_h = 0``.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+from topomap.errors import unknown_choice
+
+__all__ = ["VehicleKind", "Command", "vehicle_kind"]
+
+
+class VehicleKind(str, enum.Enum):
+    """Kinematic model of the vehicle (THESIS.md section 1)."""
+
+    UNICYCLE = "unicycle"  # u = (v_f, 0, omega)
+    OMNI = "omni"  # u = (v_f, v_h, omega)
+
+
+def vehicle_kind(name: str | VehicleKind) -> VehicleKind:
+    """Parse a vehicle name; an unknown one lists the valid choices."""
+    if isinstance(name, VehicleKind):
+        return name
+    try:
+        return VehicleKind(str(name).lower())
+    except ValueError:
+        raise unknown_choice("vehicle", name, [k.value for k in VehicleKind]) from None
+
+
+@dataclass(frozen=True)
+class Command:
+    """Velocity command ``u`` in the vehicle frame.
+
+    ``v_f`` forward speed [m/s], ``v_h`` sideways speed, positive to the vehicle's left [m/s],
+    ``omega`` turning rate, positive counter-clockwise seen from above [rad/s].
+    """
+
+    v_f: float = 0.0
+    v_h: float = 0.0
+    omega: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("v_f", "v_h", "omega"):
+            v = getattr(self, name)
+            if not math.isfinite(v):
+                raise ValueError(f"command {name}={v} is not finite")  # a bug in the caller, not user input
+
+    def as_tuple(self) -> tuple[float, float, float]:
+        return (self.v_f, self.v_h, self.omega)
+
+    def clipped(self, max_speed_mps: float, max_turn_rps: float) -> Command:
+        """The same command with each channel saturated to the given limits."""
+        def clip(x, m):
+            return max(-m, min(m, x))
+        return Command(clip(self.v_f, max_speed_mps), clip(self.v_h, max_speed_mps), clip(self.omega, max_turn_rps))
+
+    def for_vehicle(self, kind: VehicleKind) -> Command:
+        """Drop the sideways channel for a unicycle."""
+        return Command(self.v_f, 0.0, self.omega) if kind is VehicleKind.UNICYCLE else self
+
+
+STOP = Command()
