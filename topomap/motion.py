@@ -2,7 +2,10 @@
 (the simulator or a real robot) that executes them — THESIS.md section 1, eq. 1.7-1.8.
 
 The commanded input is ``u = (v_f, v_h, omega)``: forward and sideways (leftward) speed in the
-vehicle frame and turning rate. A unicycle has ``v_h = 0``.
+vehicle frame and turning rate. A unicycle has ``v_h = 0``. Pose ``xi = (x, z, theta)``:
+``xi' = G(theta) (u + d)`` with ``G = [[cos, -sin, 0], [sin, cos, 0], [0, 0, 1]]``, so in the floor
+plan drawn with x to the right and z upwards, theta and omega turn counter-clockwise and v_h points
+to the vehicle's left.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ class Command:
     """Velocity command ``u`` in the vehicle frame.
 
     ``v_f`` forward speed [m/s], ``v_h`` sideways speed, positive to the vehicle's left [m/s],
-    ``omega`` turning rate, positive counter-clockwise seen from above [rad/s].
+    ``omega`` turning rate, positive counter-clockwise in the floor plan [rad/s].
     """
 
     v_f: float = 0.0
