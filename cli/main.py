@@ -7,7 +7,7 @@ Each command module registers its commands on :data:`topomap_cli.app.app` when i
 from __future__ import annotations
 
 # Command modules (imported for their registrations).
-# (command modules are added here as they land)
+from topomap_cli import build  # noqa: F401
 from topomap_cli.app import app
 
 __all__ = ["app", "main"]

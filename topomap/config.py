@@ -77,11 +77,14 @@ class BuildConfig:
     # (THESIS.md sections 3-4), hence far above 3.
     keyframe_min_inliers: int = 60
     # ... and while the verified matches keep at least this fraction of the keyframe's features.
-    keyframe_min_ratio: float = 0.15
+    keyframe_min_ratio: float = 0.1
     # Loop closure: an edge joins two non-consecutive nodes sharing this many verified matches.
     loop_min_inliers: int = 40
     loop_min_inlier_ratio: float = 0.25  # ... and this fraction of the tentative matches
     loop_shortlist_k: int = 8  # appearance candidates checked geometrically per new node
+    # Nodes of one sequence fewer than this many sequential steps apart are not loop candidates:
+    # they are already joined by a short path (a shortcut there closes no loop).
+    loop_min_separation: int = 3
     vocabulary_words: int = 1024  # visual words of the place-recognition index
     thumbnail_px: int = 128  # longest side of the stored thumbnails [px]
     store_images: bool = True  # store each keyframe image (PNG) in the map
@@ -170,3 +173,122 @@ def from_dict(cls, data: dict):
         return cls(**kwargs)
     except TypeError as e:
         raise ConfigError(f"bad {cls.__name__}: {e}") from None
+
+
+# ---------------------------------------------------------------------- appearance servoing
+# (THESIS.md section 3; used by topomap.servo)
+@dataclass(frozen=True)
+class RelativePoseConfig:
+    """Planar relative pose from matched points (see :mod:`topomap.servo.geometry`)."""
+
+    ransac_px: float = 1.0  # Sampson inlier threshold of the planar essential matrix [px]
+    ransac_confidence: float = 0.999
+    ransac_max_iters: int = 500  # 3-point hypotheses at most
+    min_inliers: int = 12  # fewer inliers than this = TOO_FEW_INLIERS (3 is the bare minimum)
+    seed: int = 0  # RANSAC random state
+    scale: str = "median_depth"  # what lambda is: median_depth | camera_height (geometry docstring)
+    # The translation counts as observable when it explains the inliers this much better than a
+    # pure rotation does (F statistic; ~1 means no evidence); otherwise PURE_ROTATION.
+    rotation_f_ratio: float = 3.0
+    min_abs_y: float = 0.02  # |y| below this (normalised, ~horizon) carries no depth ratio
+    floor_min_y: float = 0.08  # camera_height scale: points this far below the horizon (normalised)...
+    floor_quantile: float = 0.3  # ... and this quantile of |c|/Y_i picks the floor (the lowest points)
+
+    def __post_init__(self) -> None:
+        if self.ransac_px <= 0:
+            raise ConfigError(f"ransac_px={self.ransac_px} must be positive")
+        if not 0 < self.ransac_confidence < 1:
+            raise ConfigError(f"ransac_confidence={self.ransac_confidence} must lie in (0, 1)")
+        if self.ransac_max_iters < 1:
+            raise ConfigError("ransac_max_iters must be at least 1")
+        if self.min_inliers < 3:
+            raise ConfigError(f"min_inliers={self.min_inliers} must be at least 3 (THESIS.md section 3)")
+        if self.scale not in ("median_depth", "camera_height"):
+            raise unknown_choice("scale convention", self.scale, ["median_depth", "camera_height"])
+        if self.rotation_f_ratio <= 1:
+            raise ConfigError(f"rotation_f_ratio={self.rotation_f_ratio} must exceed 1")
+        if not 0 < self.floor_quantile < 1:
+            raise ConfigError(f"floor_quantile={self.floor_quantile} must lie in (0, 1)")
+
+
+@dataclass(frozen=True)
+class ObserverConfig:
+    """Disturbance observer (see :mod:`topomap.servo.observer`); noise levels of its Kalman filters."""
+
+    heading_noise_rad: float = 0.003  # std of one relative-heading measurement [rad]
+    position_noise_s: float = 0.004  # std of one scaled-position measurement [lambda]
+    d_omega_walk: float = 0.05  # random-walk intensity of d_omega [rad/s per sqrt(s)]
+    d_omega_max: float = 0.5  # |d_omega_hat| is clipped to this [rad/s]
+    forward_walk: float = 0.02  # random-walk intensity of the forward parameters [per sqrt(s)]
+
+    def __post_init__(self) -> None:
+        for name in ("heading_noise_rad", "position_noise_s", "d_omega_walk", "d_omega_max", "forward_walk"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"observer {name}={getattr(self, name)} must be positive")
+
+
+@dataclass(frozen=True)
+class ServoConfig:
+    """Appearance servo: geometry + observer + control law (see :mod:`topomap.servo`).
+
+    Positions reach the laws divided by the unknown scale lambda; the gains assume lambda equals
+    ``nominal_scale_m`` (THESIS.md section 3: a wrong guess only changes the loop gain).
+    """
+
+    geometry: RelativePoseConfig = field(default_factory=RelativePoseConfig)
+    observer: ObserverConfig = field(default_factory=ObserverConfig)
+    max_speed_mps: float = 0.3  # saturation of v_f and v_h [m/s]
+    max_turn_rps: float = 0.6  # saturation of omega [rad/s]
+    nominal_scale_m: float = 3.0  # lambda_0: metres per scaled unit assumed by the gains [m]
+    # unicycle, Aicardi 1995 in polar coordinates (THESIS.md section 3)
+    unicycle_law: str = "aicardi"  # aicardi | scale_free
+    gamma: float = 0.4  # forward gain [1/s]
+    k_alpha: float = 1.2  # bearing gain k [1/s]
+    h: float = 1.5  # weight of theta_A in the Lyapunov function
+    # omnidirectional and final alignment
+    k_p: float = 0.5  # position gain [1/s]
+    k_theta: float = 1.0  # heading gain [1/s]
+    k_i: float = 0.15  # integral gain on the scaled position error [1/s^2]
+    integral_limit_mps: float = 0.08  # |integral action| at most this [m/s]
+    integral_zone_m: float = 0.6  # integrate only this close to the goal (anti wind-up) [m]
+    compensate: bool = True  # cancel d_omega_hat and use integral action; False = nominal laws
+    # near the goal a unicycle stops steering by the bearing (undefined at the goal) and aligns
+    dock_radius_m: float = 0.06  # enter alignment inside this distance [m] ...
+    undock_radius_m: float = 0.15  # ... and leave it beyond this one [m]
+    position_tol_m: float = 0.03  # converged: estimated distance below this [m] ...
+    heading_tol_deg: float = 1.5  # ... and |heading error| below this [deg]
+
+    def __post_init__(self) -> None:
+        for name in ("max_speed_mps", "max_turn_rps", "nominal_scale_m", "gamma", "k_alpha", "h", "k_p", "k_theta"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"servo {name}={getattr(self, name)} must be positive")
+        for name in ("k_i", "integral_limit_mps", "integral_zone_m", "dock_radius_m", "position_tol_m", "heading_tol_deg"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"servo {name}={getattr(self, name)} must not be negative")
+        if self.unicycle_law not in ("aicardi", "scale_free"):
+            raise unknown_choice("unicycle law", self.unicycle_law, ["aicardi", "scale_free"])
+        if self.undock_radius_m < self.dock_radius_m:
+            raise ConfigError("undock_radius_m must be at least dock_radius_m")
+
+
+SERVO_PRESETS: dict[str, ServoConfig] = {
+    # Disturbance-compensating servo, Aicardi law for unicycles, median-depth scale.
+    "default": ServoConfig(),
+    # The same laws without d_omega cancellation nor integral action (the baseline of the benchmarks).
+    "uncompensated": ServoConfig(compensate=False),
+    # Aicardi's scale-free variant: steering uses the observed ratio r = (v + d_v) / e.
+    "scale_free": ServoConfig(unicycle_law="scale_free"),
+    # Metric scale from the camera height (needs a textured floor); nominal_scale_m = camera height.
+    "floor": ServoConfig(geometry=RelativePoseConfig(scale="camera_height"), nominal_scale_m=0.7),
+}
+
+
+def servo_preset(name: str) -> ServoConfig:
+    """The named :class:`ServoConfig`; unknown names list the valid ones."""
+    try:
+        return SERVO_PRESETS[name]
+    except KeyError:
+        raise unknown_choice("servo preset", name, SERVO_PRESETS) from None
+
+
+__all__ += ["RelativePoseConfig", "ObserverConfig", "ServoConfig", "SERVO_PRESETS", "servo_preset"]

@@ -1,0 +1,208 @@
+"""``topomap build | info | show | export | index``: make and inspect map files."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+from rich.text import Text
+
+from topomap.build import BuildProgress, build_index, build_map
+from topomap.camera import load_camera
+from topomap.config import BUILD_PRESETS, build_preset
+from topomap.errors import DatasetError
+from topomap.features import detector
+from topomap.store import check_writable, export_graphml, export_json, load_map, save_map, update_map
+from topomap_cli.app import app, console, err_console, fail, print_json
+
+
+class _RateColumn(TextColumn):
+    """Items per second of a task (its ``unit`` field names the items)."""
+
+    def __init__(self):
+        super().__init__("")
+
+    def render(self, task):
+        speed = task.finished_speed or task.speed
+        unit = task.fields.get("unit", "frames")
+        return Text(f"{speed:5.1f} {unit}/s" if speed else f"      {unit}/s", style="cyan")
+
+
+def _progress_bar(quiet: bool):
+    return Progress(
+        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), _RateColumn(),
+        TimeElapsedColumn(), TextColumn("{task.fields[info]}"),
+        console=err_console, transient=False, disable=quiet,
+    )
+
+
+@app.command()
+def build(
+    source: Path = typer.Argument(..., help="Image folder, video file, or text file listing image paths."),
+    output: Path = typer.Option(..., "--output", "-o", help="Map file to write (e.g. office.topomap)."),
+    features: str = typer.Option(None, "--features", "-f", help=f"Local features: {', '.join(sorted(['orb', 'sift', 'akaze']))} [default: the preset's, orb]."),
+    max_features: int = typer.Option(None, "--max-features", help="Keypoints kept per image."),
+    resize: int = typer.Option(None, "--resize", help="Shrink images so the longest side is at most MAXPX.", metavar="MAXPX"),
+    camera: Path = typer.Option(None, "--camera", help="Intrinsics YAML/JSON (fx, fy, cx, cy[, distortion]); default: 60 deg field of view."),
+    preset: str = typer.Option("default", "--preset", help=f"Build preset: {', '.join(BUILD_PRESETS)}."),
+    every: int = typer.Option(1, "--every", help="Use every N-th frame (videos and folders)."),
+    append: bool = typer.Option(False, "--append", help="Add this sequence to the existing map, linked by loop closures."),
+    force: bool = typer.Option(False, "--force", help="Overwrite an existing map file."),
+    as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+) -> None:
+    """Build a topological map from an image sequence."""
+    if append and force:
+        fail("--append and --force exclude each other: --append extends the map, --force replaces it")
+    config = build_preset(preset)
+    if features is not None:
+        detector(features)
+        config = dataclasses.replace(config, features=dataclasses.replace(config.features, kind=features.lower()))
+    if max_features is not None:
+        config = dataclasses.replace(config, features=dataclasses.replace(config.features, max_features=max_features))
+    if resize is not None:
+        config = dataclasses.replace(config, features=dataclasses.replace(config.features, resize_max_px=resize))
+    if not source.exists():
+        raise DatasetError(f"{source} does not exist; give an image folder, a video or a list file")
+    check_writable(output, overwrite=force, append=append)
+    cam = load_camera(camera) if camera is not None else None
+    base = load_map(output, images=False) if append else None
+    first_node = base.next_node_id() if base else 0
+    first_frame = len(base.frames) if base else 0
+
+    t0 = time.perf_counter()
+    with _progress_bar(as_json) as bar:
+        tasks = {"frames": bar.add_task("frames", total=None, info="", unit="frames")}
+        labels = {"index": ("vocabulary", "steps"), "loops": ("loop closure", "nodes")}
+
+        def on_progress(p: BuildProgress) -> None:
+            if p.stage not in tasks:
+                label, unit = labels[p.stage]
+                tasks[p.stage] = bar.add_task(label, total=p.total, info="", unit=unit)
+            info = f"{p.nodes} nodes" if p.stage == "frames" else f"{p.edges} edges"
+            bar.update(tasks[p.stage], total=p.total or None, completed=p.done, info=info)
+
+        m = build_map(source, None if append and features is None else config, cam, base=base, every=every,
+                      on_progress=on_progress)
+    if append:
+        update_map(m, output, first_new_node=first_node, first_new_frame=first_frame)
+    else:
+        save_map(m, output, overwrite=force)
+    seconds = time.perf_counter() - t0
+    run = m.sequences[-1]
+    summary = {
+        "map": str(output),
+        "source": str(source),
+        "frames_read": run["frames_read"],
+        "frames_skipped": run["frames_skipped"],
+        "skipped": run["skipped"],
+        "nodes_added": run["nodes_added"],
+        **{k: v for k, v in m.summary().items() if k in ("nodes", "frames", "edges", "edges_by_kind", "components")},
+        "features": m.feature_kind,
+        "seconds": round(seconds, 2),
+        "frames_per_second": round(run["frames"] / seconds, 2) if seconds > 0 else None,
+        "file_bytes": output.stat().st_size,
+    }
+    if as_json:
+        print_json(summary)
+        return
+    t = Table(title=f"{'Extended' if append else 'Built'} {output}", show_header=False, box=None, padding=(0, 2))
+    t.add_row("frames read", f"{summary['frames_read']}  ({summary['frames_skipped']} skipped)")
+    for s in run["skipped"][:5]:
+        t.add_row("  skipped", f"{s['frame']}: {s['reason']}")
+    t.add_row("nodes", f"{summary['nodes']}  (+{summary['nodes_added']})" if append else str(summary["nodes"]))
+    t.add_row("edges", f"{summary['edges']}  " + ", ".join(f"{k} {v}" for k, v in summary["edges_by_kind"].items()))
+    t.add_row("components", str(summary["components"]))
+    t.add_row("features", f"{m.feature_kind}, working size {m.working_size[0]}x{m.working_size[1]}, camera: {m.camera.source}")
+    t.add_row("time", f"{seconds:.1f} s  ({summary['frames_per_second']} frames/s)")
+    t.add_row("file", f"{output}  ({summary['file_bytes'] / 1e6:.1f} MB)")
+    console.print(t)
+
+
+@app.command()
+def info(
+    map_path: Path = typer.Argument(..., metavar="MAP", help="Map file."),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON."),
+) -> None:
+    """Summarise a map: nodes, frames, edges by kind, components, features, schema version."""
+    m = load_map(map_path)
+    from topomap.store import SCHEMA_VERSION
+
+    data = {**m.summary(), "schema_version": SCHEMA_VERSION, "file_bytes": map_path.stat().st_size,
+            "created_utc": m.meta.get("created_utc"), "topomap_version": m.meta.get("topomap_version"),
+            "build_config": dataclasses.asdict(m.config),
+            "sequence_sources": [s.get("source") for s in m.sequences]}
+    if as_json:
+        print_json(data)
+        return
+    t = Table(title=str(map_path), show_header=False, box=None, padding=(0, 2))
+    t.add_row("nodes", str(data["nodes"]))
+    t.add_row("frames", f"{data['frames']}  ({data['frames_skipped']} skipped)")
+    t.add_row("edges", f"{data['edges']}  " + ", ".join(f"{k} {v}" for k, v in data["edges_by_kind"].items()))
+    t.add_row("components", str(data["components"]))
+    f = data["features"]
+    t.add_row("features", f"{f['kind']}: {f['total']} ({f['per_node_mean']:.0f} per node)")
+    t.add_row("index", "yes" if data["index"] else "no (run `topomap index`)")
+    t.add_row("sequences", "; ".join(str(s) for s in data["sequence_sources"]))
+    t.add_row("working size", f"{data['working_size'][0]}x{data['working_size'][1]}")
+    t.add_row("schema version", str(data["schema_version"]))
+    t.add_row("file size", f"{data['file_bytes'] / 1e6:.2f} MB")
+    console.print(t)
+
+
+@app.command()
+def show(
+    map_path: Path = typer.Argument(..., metavar="MAP", help="Map file."),
+    output: Path = typer.Option(..., "--output", "-o", help="PNG to write."),
+    poses: Path = typer.Option(None, "--poses", help="Ground-truth poses CSV (image,x,z[,theta] or image,cx,cy,cz) to place nodes."),
+) -> None:
+    """Draw the map graph with node thumbnails (loop edges dashed red)."""
+    from topomap.groundtruth import read_poses
+    from topomap.viz import plot_map
+
+    m = load_map(map_path)
+    positions = read_poses(poses).positions_2d() if poses else None
+    if positions is not None:
+        missing = [n.source for n in m.nodes.values() if n.source not in positions]
+        if missing:
+            raise DatasetError(f"{poses} has no pose for keyframe(s) {', '.join(missing[:3])}; is it the right file?")
+    if not output.parent.exists():
+        fail(f"folder {output.parent} does not exist")
+    plot_map(m, output, positions)
+    err_console.print(f"wrote {output}")
+
+
+@app.command()
+def export(
+    map_path: Path = typer.Argument(..., metavar="MAP", help="Map file."),
+    fmt: str = typer.Option("json", "--format", help="json or graphml."),
+    output: Path = typer.Option(..., "--output", "-o", help="File to write."),
+) -> None:
+    """Export the graph as JSON or GraphML."""
+    fmt = fmt.lower()
+    if fmt not in ("json", "graphml"):
+        fail(f"unknown format {fmt!r}; choose one of: graphml, json")
+    if not output.parent.exists():
+        fail(f"folder {output.parent} does not exist")
+    m = load_map(map_path)
+    if fmt == "json":
+        output.write_text(json.dumps(export_json(m), indent=2) + "\n")
+    else:
+        export_graphml(m, output)
+    err_console.print(f"wrote {output}")
+
+
+@app.command()
+def index(map_path: Path = typer.Argument(..., metavar="MAP", help="Map file.")) -> None:
+    """(Re)build a map's place-recognition index in place (maps built by older versions)."""
+    m = load_map(map_path)
+    build_index(m)
+    if m.index is None:
+        fail(f"{map_path} has too few features to index")
+    n = m.next_node_id()
+    update_map(m, map_path, first_new_node=n, first_new_frame=len(m.frames))
+    console.print(f"indexed {len(m.index)} nodes with {m.index.vocabulary.size} visual words")

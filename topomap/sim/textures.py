@@ -1,0 +1,282 @@
+"""Wall, floor and ceiling textures: real photographs plus procedural variety.
+
+A texture is named by a string key that a world file stores:
+
+* ``photo:NAME`` — one of the photographs shipped in ``topomap_datasets/textures`` (crops of the
+  real castle-P30 and corridor images, see PROVENANCE.md there);
+* ``user:FILE`` — a photograph in the folder the user gave with ``--textures DIR``;
+* ``proc:KIND:SEED`` — drawn procedurally from a seed (kinds in :data:`PROCEDURAL`).
+
+Photographs make local features plentiful; procedural textures repeat across a world so that places
+can look alike, as they do in real buildings. Every texture comes back as an ``(H, W, 3) uint8`` RGB
+array; the same key always gives the same pixels.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from collections.abc import Callable
+from importlib import resources
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from topomap.errors import DatasetError, unknown_choice
+
+__all__ = [
+    "PROCEDURAL",
+    "IMAGE_SUFFIXES",
+    "builtin_texture_dir",
+    "photo_keys",
+    "texture_image",
+    "texture_width_m",
+    "FLOOR_TILE_M",
+    "CEILING_TILE_M",
+]
+
+log = logging.getLogger(__name__)
+
+#: Files accepted as photographs in a texture folder.
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
+#: Side of the square patch of floor one floor texture covers [m].
+FLOOR_TILE_M = 2.0
+#: Side of the square patch of ceiling one ceiling texture covers [m].
+CEILING_TILE_M = 2.4
+
+_PROC_PX = 256  # side of a procedural texture [px]
+
+
+def builtin_texture_dir() -> Path:
+    """Folder of the photographs shipped with topomap."""
+    return Path(str(resources.files("topomap_datasets") / "textures"))
+
+
+def _photo_files(folder: Path) -> list[Path]:
+    if not folder.is_dir():
+        raise DatasetError(f"texture folder {folder} does not exist; give a folder of photographs (.jpg/.png)")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    if not files:
+        raise DatasetError(f"texture folder {folder} holds no .jpg/.png photographs; add some or omit --textures")
+    return files
+
+
+def photo_keys(texture_dir: str | Path | None = None) -> list[str]:
+    """Keys of the available photographs: the user's folder if given, else the shipped set (sorted)."""
+    if texture_dir is None:
+        return [f"photo:{p.stem}" for p in _photo_files(builtin_texture_dir())]
+    keys = []
+    for p in _photo_files(Path(texture_dir)):
+        if _read_photo(str(p)) is None:
+            log.warning("skipping unreadable texture photograph %s", p)
+            continue
+        keys.append(f"user:{p.name}")
+    if not keys:
+        raise DatasetError(f"no readable photograph in texture folder {texture_dir}; use .jpg/.png files")
+    return keys
+
+
+@functools.lru_cache(maxsize=64)
+def _read_photo(path: str) -> np.ndarray | None:
+    img = cv2.imread(path, cv2.IMREAD_COLOR)
+    if img is None or img.shape[0] < 8 or img.shape[1] < 8:
+        return None
+    # Large user photographs are shrunk: TinyRenderer samples textures without filtering anyway.
+    scale = 512.0 / max(img.shape[:2])
+    if scale < 1.0:
+        img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    img.setflags(write=False)
+    return img
+
+
+def texture_image(key: str, texture_dir: str | Path | None = None) -> np.ndarray:
+    """The ``(H, W, 3) uint8`` RGB pixels of texture ``key`` (read-only array)."""
+    kind, _, rest = str(key).partition(":")
+    if kind == "photo":
+        path = builtin_texture_dir() / f"{rest}.jpg"
+        img = _read_photo(str(path)) if path.is_file() else None
+        if img is None:
+            raise DatasetError(f"texture {key!r} is not among the shipped photographs; reinstall topomap or regenerate the world")
+        return img
+    if kind == "user":
+        if texture_dir is None:
+            raise DatasetError(f"texture {key!r} needs the user's texture folder; give --textures DIR")
+        path = Path(texture_dir) / rest
+        img = _read_photo(str(path)) if path.is_file() else None
+        if img is None:
+            raise DatasetError(f"texture photograph {path} is missing or unreadable; restore it or regenerate the world")
+        return img
+    if kind == "proc":
+        name, _, seed = rest.partition(":")
+        if name not in PROCEDURAL:
+            raise unknown_choice("procedural texture", name, PROCEDURAL)
+        try:
+            seed_i = int(seed)
+        except ValueError:
+            raise DatasetError(f"texture key {key!r} needs an integer seed, like 'proc:{name}:3'") from None
+        return _procedural(name, seed_i)
+    raise DatasetError(f"texture key {key!r} is not of the form photo:NAME, user:FILE or proc:KIND:SEED")
+
+
+def texture_width_m(key: str, texture_dir: str | Path | None, height_m: float) -> float:
+    """Width [m] one copy of a wall texture spans when its height is stretched to ``height_m``."""
+    img = texture_image(key, texture_dir)
+    return height_m * img.shape[1] / img.shape[0]
+
+
+# ---------------------------------------------------------------------- procedural textures
+# Hand-written with numpy/OpenCV drawing: no library ships seeded, feature-rich wall patterns.
+def _noise(rng: np.random.Generator, img: np.ndarray, sigma: float) -> np.ndarray:
+    out = img.astype(np.float32) + rng.normal(0.0, sigma, img.shape).astype(np.float32)
+    return np.clip(out, 0, 255).astype(np.uint8)
+
+
+def _colour(rng: np.random.Generator, lo: int = 30, hi: int = 230) -> tuple[int, int, int]:
+    return tuple(int(c) for c in rng.integers(lo, hi, 3))
+
+
+def _scribble(rng: np.random.Generator, img: np.ndarray, x0: int, y0: int, x1: int, y1: int, colour) -> None:
+    """Lines of random letters, like text on a notice."""
+    letters = "ABCDEFGHKLMNPRSTUVWXYZ0123456789"
+    y = y0 + 12
+    while y < y1 - 2:
+        n = max(1, (x1 - x0) // 9)
+        text = "".join(rng.choice(list(letters), n))
+        cv2.putText(img, text, (x0 + 2, y), cv2.FONT_HERSHEY_SIMPLEX, 0.35, colour, 1, cv2.LINE_AA)
+        y += int(rng.integers(12, 18))
+
+
+def _poster(rng: np.random.Generator) -> np.ndarray:
+    s = _PROC_PX
+    img = np.full((s, s, 3), _colour(rng, 150, 240), np.uint8)
+    for _ in range(int(rng.integers(5, 10))):  # framed pictures and notices
+        w, h = (int(v) for v in rng.integers(30, 110, 2))
+        x, y = int(rng.integers(0, s - w)), int(rng.integers(0, s - h))
+        cv2.rectangle(img, (x, y), (x + w, y + h), _colour(rng), -1)
+        cv2.rectangle(img, (x, y), (x + w, y + h), _colour(rng, 0, 80), 2)
+        if rng.random() < 0.6:
+            _scribble(rng, img, x + 2, y + 2, x + w - 2, y + h - 2, _colour(rng, 0, 120))
+    for _ in range(int(rng.integers(3, 7))):
+        c = (int(rng.integers(10, s - 10)), int(rng.integers(10, s - 10)))
+        cv2.circle(img, c, int(rng.integers(6, 28)), _colour(rng), -1)
+    for _ in range(int(rng.integers(2, 5))):
+        p = [(int(rng.integers(0, s)), int(rng.integers(0, s))) for _ in range(3)]
+        cv2.fillPoly(img, [np.array(p, np.int32)], _colour(rng))
+    return _noise(rng, img, 6.0)
+
+
+def _bricks(rng: np.random.Generator) -> np.ndarray:
+    s = _PROC_PX
+    mortar = np.array(_colour(rng, 170, 220), np.float32)
+    base = np.array([rng.integers(120, 190), rng.integers(50, 100), rng.integers(30, 80)], np.float32)
+    img = np.empty((s, s, 3), np.float32)
+    img[:] = mortar
+    bh, bw = 16, 48
+    for row in range(s // bh):
+        off = (bw // 2) * (row % 2)
+        for x in range(-bw, s, bw):
+            c = np.clip(base + rng.normal(0, 18, 3), 0, 255)
+            x0, x1 = max(0, x + off + 2), min(s, x + off + bw - 2)
+            if x1 > x0:
+                img[row * bh + 2 : row * bh + bh - 2, x0:x1] = c
+    return _noise(rng, img, 10.0)
+
+
+def _board(rng: np.random.Generator) -> np.ndarray:
+    s = _PROC_PX
+    cork = np.array([rng.integers(150, 190), rng.integers(110, 140), rng.integers(60, 90)], np.uint8)
+    img = np.empty((s, s, 3), np.uint8)
+    img[:] = cork
+    img = _noise(rng, img, 18.0)
+    cv2.rectangle(img, (0, 0), (s - 1, s - 1), _colour(rng, 40, 100), 8)
+    for _ in range(int(rng.integers(6, 12))):  # pinned notes
+        w, h = (int(v) for v in rng.integers(28, 70, 2))
+        x, y = int(rng.integers(10, s - w - 10)), int(rng.integers(10, s - h - 10))
+        paper = _colour(rng, 200, 255)
+        cv2.rectangle(img, (x, y), (x + w, y + h), paper, -1)
+        _scribble(rng, img, x, y, x + w, y + h, _colour(rng, 0, 90))
+        cv2.circle(img, (x + w // 2, y + 4), 3, _colour(rng, 0, 255), -1)
+    return img
+
+
+def _panels(rng: np.random.Generator) -> np.ndarray:
+    s = _PROC_PX
+    base = np.array([rng.integers(120, 200), rng.integers(80, 140), rng.integers(40, 90)], np.float32)
+    x = np.arange(s, dtype=np.float32)
+    grain = 14.0 * np.sin(x[None, :] / rng.uniform(2.0, 5.0) + rng.uniform(0, 6.28)) + rng.normal(0, 6, (s, s))
+    img = base[None, None, :] + grain[:, :, None]
+    for xb in range(0, s, int(rng.integers(40, 70))):  # panel joints
+        img[:, xb : xb + 2] *= 0.5
+    img = np.clip(img, 0, 255).astype(np.uint8)
+    # A door with frame, handle and sign.
+    dw = int(rng.integers(70, 110))
+    dx = int(rng.integers(10, s - dw - 10))
+    cv2.rectangle(img, (dx, 40), (dx + dw, s - 1), _colour(rng), -1)
+    cv2.rectangle(img, (dx, 40), (dx + dw, s - 1), (30, 30, 30), 4)
+    cv2.circle(img, (dx + dw - 14, 160), 5, (220, 220, 200), -1)
+    cv2.rectangle(img, (dx + 15, 60), (dx + dw - 15, 85), (240, 240, 240), -1)
+    _scribble(rng, img, dx + 15, 60, dx + dw - 15, 85, (20, 20, 20))
+    return _noise(rng, img, 5.0)
+
+
+def _tiles(rng: np.random.Generator) -> np.ndarray:
+    """Floor: 4 x 4 tiles of 0.5 m with grout, tint and speckles (features near the robot)."""
+    s = _PROC_PX
+    n = 4
+    t = s // n
+    base = np.array(_colour(rng, 90, 170), np.float32)
+    img = np.empty((s, s, 3), np.float32)
+    for i in range(n):
+        for j in range(n):
+            img[i * t : (i + 1) * t, j * t : (j + 1) * t] = np.clip(base + rng.normal(0, 12, 3), 0, 255)
+    img = _noise(rng, img, 12.0)
+    k = int(s * s * 0.01)  # speckles
+    ys, xs = rng.integers(0, s, k), rng.integers(0, s, k)
+    img[ys, xs] = rng.integers(0, 255, (k, 1)).astype(np.uint8)
+    for _ in range(int(rng.integers(4, 9))):  # scuffs
+        c = (int(rng.integers(0, s)), int(rng.integers(0, s)))
+        cv2.ellipse(img, c, (int(rng.integers(3, 12)), int(rng.integers(2, 6))), float(rng.uniform(0, 180)), 0, 360, _colour(rng, 20, 90), -1)
+    for i in range(n):  # grout
+        img[i * t : i * t + 3, :] = 60
+        img[:, i * t : i * t + 3] = 60
+    return img
+
+
+def _ceiling(rng: np.random.Generator) -> np.ndarray:
+    """Ceiling: 4 x 4 acoustic tiles of 0.6 m, perforated, with one light panel."""
+    s = _PROC_PX
+    n = 4
+    t = s // n
+    img = np.full((s, s, 3), _colour(rng, 200, 235), np.uint8)
+    img = _noise(rng, img, 8.0)
+    k = 700
+    ys, xs = rng.integers(0, s, k), rng.integers(0, s, k)
+    img[ys, xs] = 110
+    i, j = (int(v) for v in rng.integers(0, n, 2))
+    img[i * t + 4 : (i + 1) * t - 4, j * t + 4 : (j + 1) * t - 4] = 252
+    img[i * t + 4 : (i + 1) * t - 4, j * t + t // 2] = 200
+    for a in range(n):
+        img[a * t : a * t + 3, :] = 150
+        img[:, a * t : a * t + 3] = 150
+    return img
+
+
+#: Procedural texture kinds: name -> generator(rng) -> (256, 256, 3) uint8 RGB.
+PROCEDURAL: dict[str, Callable[[np.random.Generator], np.ndarray]] = {
+    "poster": _poster,
+    "bricks": _bricks,
+    "board": _board,
+    "panels": _panels,
+    "tiles": _tiles,
+    "ceiling": _ceiling,
+}
+
+
+@functools.lru_cache(maxsize=128)
+def _procedural(name: str, seed: int) -> np.ndarray:
+    img = PROCEDURAL[name](np.random.default_rng([seed, sorted(PROCEDURAL).index(name)]))
+    img = np.ascontiguousarray(img, dtype=np.uint8)
+    img.setflags(write=False)
+    return img
