@@ -241,6 +241,10 @@ def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progres
         return 0
     tested: set[tuple[int, int]] = set()
     added = 0
+    all_ids = set(tmap.nodes)
+    by_sequence: dict[int, set[int]] = {}
+    for n in tmap.nodes.values():
+        by_sequence.setdefault(n.sequence, set()).add(n.id)
     seq_adj: dict[int, list[int]] = {}
     for e in tmap.edges.values():
         if e.kind is EdgeKind.SEQUENTIAL:
@@ -250,8 +254,13 @@ def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progres
         node = tmap.nodes[nid]
         if len(node.features) < cfg.match.min_inliers:
             continue
-        exclude = _within_steps(seq_adj, nid, cfg.loop_min_separation)
-        for cid, score in index.shortlist(node.features, cfg.loop_shortlist_k, exclude):
+        near = _within_steps(seq_adj, nid, cfg.loop_min_separation)
+        scores = index.scores(node.features)
+        own = by_sequence[node.sequence]
+        candidates = index.top_k(scores, cfg.loop_shortlist_k, near | (all_ids - own))
+        if len(own) < len(all_ids):
+            candidates += index.top_k(scores, cfg.loop_shortlist_k, own)
+        for cid, score in candidates:
             pair = (min(nid, cid), max(nid, cid))
             if score <= 0 or pair in tested or pair in tmap.edges:
                 continue

@@ -2,8 +2,10 @@
 
 Writing a new map goes to a temporary file beside the target that replaces it atomically only once
 complete, so an interrupted or failed build never leaves half a map and never damages an existing
-file. ``--append`` adds rows to an existing map inside one transaction (WAL journal: readers keep
-reading while it writes; an interrupted append rolls back).
+file. ``--append`` adds rows to an existing map inside one transaction: an interrupted append rolls
+back. The rollback journal is used rather than WAL because a read-only WAL reader leaves ``-wal`` and
+``-shm`` files beside the map; writes are short (a build computes everything in memory first), and
+readers wait for a commit through SQLite's busy timeout.
 
 Arrays are stored as raw little-endian bytes with their dtype and shape in columns and read back
 with ``np.frombuffer``; images are PNG. A file is recognised by SQLite's ``application_id``
@@ -187,12 +189,7 @@ def _connect_ro(path: Path) -> sqlite3.Connection:
         raise MapFormatError(f"{path} is an SQLite database but not a topomap map")
     uri = f"file:{path.resolve().as_posix()}?mode=ro"
     try:
-        con = sqlite3.connect(uri, uri=True)
-        con.execute("PRAGMA query_only = ON")
-        version = con.execute("PRAGMA user_version").fetchone()[0]
-    except sqlite3.OperationalError:
-        # a WAL map on read-only media cannot create its -shm file: read it as immutable
-        con = sqlite3.connect(f"file:{path.resolve().as_posix()}?mode=ro&immutable=1", uri=True)
+        con = sqlite3.connect(uri, uri=True, timeout=30)
         version = con.execute("PRAGMA user_version").fetchone()[0]
     except sqlite3.DatabaseError as e:
         raise MapFormatError(f"map {path} is damaged or truncated ({e}); rebuild it or restore a copy") from None
@@ -277,7 +274,6 @@ def save_map(m: TopoMap, path: str | Path, *, overwrite: bool = False) -> Path:
     try:
         with closing(sqlite3.connect(tmp)) as con:
             con.executescript(SCHEMA)
-            con.execute("PRAGMA journal_mode = WAL")
             with con:  # one transaction
                 _insert_nodes(con, sorted(m.nodes.values(), key=lambda n: n.id))
                 _upsert_edges(con, sorted(m.edges.values(), key=lambda e: e.key))
@@ -285,7 +281,7 @@ def save_map(m: TopoMap, path: str | Path, *, overwrite: bool = False) -> Path:
                 _write_meta_and_index(con, m)
         os.replace(tmp, path)
     except BaseException:
-        for leftover in (tmp, tmp.with_name(tmp.name + "-wal"), tmp.with_name(tmp.name + "-shm")):
+        for leftover in (tmp, tmp.with_name(tmp.name + "-journal")):
             leftover.unlink(missing_ok=True)
         raise
     return path
@@ -301,7 +297,6 @@ def update_map(m: TopoMap, path: str | Path, *, first_new_node: int, first_new_f
     _connect_ro(path).close()  # same identity/version checks as reading
     con = sqlite3.connect(path, timeout=30)
     try:
-        con.execute("PRAGMA journal_mode = WAL")
         con.execute("BEGIN IMMEDIATE")
         _insert_nodes(con, [n for i, n in sorted(m.nodes.items()) if i >= first_new_node])
         _insert_frames(con, [f for f in m.frames if f.id >= first_new_frame])

@@ -21,6 +21,13 @@ from topomap.observability.analysis import (
     float_rank,
     observability_table,
 )
+from topomap.observability.observer import (
+    CONVERGENCE_TIME_S,
+    ObserverConfig,
+    Simulation,
+    plot_simulation,
+    simulate,
+)
 from topomap.observability.system import (
     DirectionKind,
     InputKind,
@@ -35,6 +42,11 @@ from topomap.observability.system import (
 )
 
 __all__ = [
+    "CONVERGENCE_TIME_S",
+    "ObserverConfig",
+    "Simulation",
+    "plot_simulation",
+    "simulate",
     "PRIMES",
     "TABLE_CONFIGURATIONS",
     "Direction",

@@ -31,7 +31,7 @@ import sympy as sp
 from sympy import GF
 from sympy.polys.matrices import DomainMatrix
 
-from topomap.errors import ConfigError
+from topomap.errors import ConfigError, unknown_choice
 from topomap.motion import VehicleKind, vehicle_kind
 from topomap.observability import jets
 from topomap.observability.system import DirectionKind, System, vehicle_landmark_system
@@ -62,21 +62,21 @@ ALGORITHM_VERSION = 1
 class Direction:
     """One unobservable direction at the evaluation point.
 
-    ``field``: ``(state, component)`` pairs of the symbolic vector field when the direction is a known
+    ``field``: ``(state, sympy component)`` pairs of the vector field when the direction is a known
     symmetry (empty otherwise); ``support``: the states it changes.
     """
 
     kind: DirectionKind
     reading: str
     support: tuple[str, ...]
-    field: tuple[tuple[str, str], ...] = ()
+    field: tuple[tuple[str, sp.Expr], ...] = ()
 
     def to_dict(self) -> dict:
         return {
             "kind": self.kind.value,
             "reading": self.reading,
             "support": list(self.support),
-            "field": dict(self.field) if self.field else None,
+            "field": {k: str(v) for k, v in self.field} if self.field else None,
         }
 
 
@@ -285,7 +285,7 @@ def _directions(system: System, main, other, unobservable: int) -> tuple[Directi
             continue
         if independent(v):
             accepted.append(v)
-            comps = tuple((nm, str(c)) for nm, c in zip(names, sym.field) if c != 0)
+            comps = tuple((nm, c) for nm, c in zip(names, sym.field) if c != 0)
             out.append(Direction(sym.kind, sym.reading, _support(names, v), comps))
 
     cols = [names.index(str(s)) for s in reversed(system.input_states)]  # highest derivatives first
@@ -389,8 +389,6 @@ def observability_table(
     names = list(configurations) if configurations is not None else list(TABLE_CONFIGURATIONS)
     for nm in names:
         if nm not in TABLE_CONFIGURATIONS:
-            from topomap.errors import unknown_choice
-
             raise unknown_choice("configuration", nm, TABLE_CONFIGURATIONS)
     if not isinstance(orders, int) or not 1 <= orders <= 8:
         raise ConfigError(f"orders={orders!r} must be an integer in 1..8")

@@ -10,7 +10,6 @@ systems of the thesis' table and :func:`linear_system` the scalar sanity system
 from __future__ import annotations
 
 import enum
-from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from fractions import Fraction
 
