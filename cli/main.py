@@ -8,6 +8,7 @@ from __future__ import annotations
 
 # Command modules (imported for their registrations).
 from topomap_cli import build  # noqa: F401
+from topomap_cli import observability  # noqa: F401
 from topomap_cli.app import app
 
 __all__ = ["app", "main"]
