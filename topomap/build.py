@@ -30,7 +30,7 @@ from topomap.features import Features, detector, extract
 from topomap.graph import Edge, EdgeKind, FrameRecord, Node, TopoMap
 from topomap.images import ImageSequence, open_sequence, to_working_resolution, working_size
 from topomap.matching import Verification, verify
-from topomap.retrieval import BowIndex, Vocabulary, thumbnail_descriptor
+from topomap.retrieval import BowIndex, Vocabulary, thumbnail_descriptor, vocabulary_size
 
 __all__ = ["BuildProgress", "build_map", "build_index", "descriptor_size", "make_thumbnail"]
 
@@ -228,7 +228,8 @@ def build_index(tmap: TopoMap, on_progress: Callable[[BuildProgress], None] | No
         tmap.index = None
         return None
     cfg = tmap.config
-    voc = Vocabulary.train(np.concatenate(desc), cfg.features.kind, cfg.vocabulary_words, cfg.seed)
+    desc = np.concatenate(desc)
+    voc = Vocabulary.train(desc, cfg.features.kind, vocabulary_size(len(desc), cfg.vocabulary_words), cfg.seed)
     tmap.index = BowIndex.build(voc, feats)
     _report(on_progress, "index", 1, 1, tmap)
     return tmap.index

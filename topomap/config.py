@@ -87,7 +87,7 @@ class BuildConfig:
     # Nodes of one sequence fewer than this many sequential steps apart are not loop candidates:
     # they are already joined by a short path (a shortcut there closes no loop).
     loop_min_separation: int = 3
-    vocabulary_words: int = 1024  # visual words of the place-recognition index
+    vocabulary_words: int = 65536  # upper bound on visual words; the map's descriptors decide (8 per word)
     thumbnail_px: int = 128  # longest side of the stored thumbnails [px]
     store_images: bool = True  # store each keyframe image (PNG) in the map
     seed: int = 0  # every random choice (vocabulary k-means, RANSAC) derives from this
@@ -191,8 +191,8 @@ class RelativePoseConfig:
     seed: int = 0  # RANSAC random state
     scale: str = "median_depth"  # what lambda is: median_depth | camera_height (geometry docstring)
     # The translation counts as observable when it explains the inliers this much better than a
-    # pure rotation does (F statistic; ~1 means no evidence); otherwise PURE_ROTATION.
-    rotation_f_ratio: float = 2.0
+    # pure rotation does (trimmed F statistic; ~1 means no evidence); otherwise PURE_ROTATION.
+    rotation_f_ratio: float = 1.5
     min_abs_y: float = 0.02  # |y| below this (normalised, ~horizon) carries no depth ratio
     floor_min_y: float = 0.08  # camera_height scale: of the points this far below the horizon...
     floor_fraction: float = 0.3  # ... this lowest fraction (in the image) is taken to lie on the floor

@@ -1,13 +1,17 @@
-"""Place recognition: a visual vocabulary with a TF-IDF inverted index, and whole-image descriptors.
+"""Place recognition: a vocabulary tree with a TF-IDF inverted file, and whole-image descriptors.
 
-* :class:`Vocabulary` — a two-level hierarchical k-means tree (DBoW2-style) trained with
-  scikit-learn; binary descriptors are unpacked to {0, 1} bit vectors, where squared L2 equals the
-  Hamming distance. Quantising a descriptor costs ``k1 + k2`` distance evaluations instead of
-  ``k1 * k2`` (sklearn has no hierarchical k-means, hence the small tree written here).
-* :class:`BowIndex` — L2-normalised TF-IDF bag-of-words vectors in a sparse node x word matrix;
-  :meth:`BowIndex.shortlist` returns the k most similar nodes (cosine similarity).
-* :func:`thumbnail_descriptor` — a patch-normalised thumbnail (SeqSLAM), the whole-image
-  descriptor for images too small or too blurred for keypoints.
+* :class:`Vocabulary` — a hierarchical k-means tree (DBoW2-style, Nister & Stewenius 2006): depth
+  ``L``, branching ``k``; quantising a descriptor costs ``k * L`` distance evaluations instead of
+  ``k ** L``. Binary descriptors get binary centres (bit-wise majority of their cluster) compared
+  with Hamming popcounts; SIFT gets float centres. The clustering itself is OpenCV's ``kmeans``
+  (seeded). The tree walk is written here because neither OpenCV nor scikit-learn offers one.
+* :class:`BowIndex` — an inverted file: for every visual word, the nodes containing it and how often.
+  A query touches only the posting lists of its own words (cosine similarity of TF-IDF vectors), and
+  skips *stop words* — words present in a large fraction of a big map's nodes, which carry almost no
+  information and dominate the cost (Sivic & Zisserman 2003). The vocabulary grows with the map
+  (:func:`vocabulary_size`), which keeps posting lists short: query time grows far slower than the map.
+* :func:`thumbnail_descriptor` — a patch-normalised thumbnail (SeqSLAM), the whole-image descriptor
+  for images too small or too blurred for keypoints.
 
 Everything serialises to plain numpy arrays (``to_arrays`` / ``from_arrays``), never pickle.
 """
@@ -19,122 +23,188 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import scipy.sparse as sp
-from sklearn.cluster import MiniBatchKMeans
 
 from topomap.errors import MapFormatError
 from topomap.features import Features, detector
 
-__all__ = ["Vocabulary", "BowIndex", "thumbnail_descriptor", "descriptor_space"]
+__all__ = ["Vocabulary", "BowIndex", "vocabulary_size", "thumbnail_descriptor", "sad"]
+
+#: Minimum descriptors per visual word when sizing a vocabulary from a map's own descriptors.
+DESCRIPTORS_PER_WORD = 8
 
 
-def descriptor_space(descriptors: np.ndarray, binary: bool) -> np.ndarray:
-    """Descriptors in the Euclidean space the vocabulary lives in: (N, D) float32.
-
-    Binary descriptors (N, B) uint8 become (N, 8B) bit vectors; float descriptors are L2-normalised.
-    """
-    if binary:
-        return np.unpackbits(np.ascontiguousarray(descriptors, dtype=np.uint8), axis=1).astype(np.float32)
-    d = np.asarray(descriptors, dtype=np.float32)
-    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+def vocabulary_size(n_descriptors: int, max_words: int) -> int:
+    """Words for a vocabulary trained on ``n_descriptors``: as many as the data supports (8
+    descriptors per word), at most ``max_words``."""
+    return int(max(16, min(max_words, n_descriptors // DESCRIPTORS_PER_WORD)))
 
 
-def _nearest(x: np.ndarray, centers: np.ndarray, centers_sq: np.ndarray) -> np.ndarray:
-    """Index of the nearest centre (squared L2) for each row of x."""
-    return np.argmin(centers_sq[None, :] - 2.0 * (x @ centers.T), axis=1)
+def _hamming(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """(N, B) uint8 x (N, k, B) uint8 -> (N, k) int32 Hamming distances."""
+    return np.bitwise_count(np.bitwise_xor(centres, x[:, None, :])).sum(axis=2, dtype=np.int32)
+
+
+def _kmeans(x: np.ndarray, k: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV k-means++ on float32 rows: (centres (k, D), labels (N,))."""
+    cv2.setRNGSeed(seed)
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 15, 1e-3)
+    _, labels, centres = cv2.kmeans(np.ascontiguousarray(x, np.float32), k, None, criteria, 1, cv2.KMEANS_PP_CENTERS)
+    return centres.astype(np.float32), labels.ravel().astype(np.int64)
 
 
 @dataclass(frozen=True)
 class Vocabulary:
-    """Two-level k-means tree over descriptor space.
+    """A vocabulary tree.
 
-    ``top``: (k1, D) float32 level-1 centres; ``leaves``: (k1, k2, D) float32 level-2 centres
-    (unused slots hold copies of the parent centre); ``kind``: the feature type it was trained for.
-    Word id = ``i1 * k2 + i2``; ``size`` = k1 * k2.
+    ``centres[l]``: level-``l`` cluster centres — (n_l, B) uint8 packed bits for binary kinds,
+    (n_l, D) float32 otherwise; ``children[l]``: (n_l, k) int32, row ``i`` lists the level-``l+1``
+    children of centre ``i`` (padded by repeating the first child). Level 0 holds the root's
+    ``k`` children; the leaves (last level) are the words.
     """
 
-    top: np.ndarray
-    leaves: np.ndarray
+    centres: tuple[np.ndarray, ...]
+    children: tuple[np.ndarray, ...]
     kind: str
 
     @property
     def size(self) -> int:
-        return int(self.leaves.shape[0] * self.leaves.shape[1])
+        return int(len(self.centres[-1]))
+
+    @property
+    def depth(self) -> int:
+        return len(self.centres)
 
     @property
     def binary(self) -> bool:
         return detector(self.kind).binary
 
+    # ------------------------------------------------------------------ training
     @classmethod
-    def train(cls, descriptors: np.ndarray, kind: str, words: int = 1024, seed: int = 0, max_samples: int = 200_000) -> Vocabulary:
-        """k-means tree with about ``words`` leaves from (N, D) descriptors (subsampled, seeded)."""
+    def train(cls, descriptors: np.ndarray, kind: str, words: int = 4096, seed: int = 0,
+              max_samples: int = 200_000) -> Vocabulary:
+        """Tree with about ``words`` leaves from (N, D) descriptors (subsampled to ``max_samples``)."""
         det = detector(kind)
-        rng = np.random.default_rng(seed)
         n = len(descriptors)
-        if n == 0:
-            raise ValueError("cannot train a vocabulary without descriptors")
+        if n < 2:
+            raise ValueError("a vocabulary needs at least two descriptors")
+        rng = np.random.default_rng(seed)
         if n > max_samples:
             descriptors = descriptors[np.sort(rng.choice(n, max_samples, replace=False))]
-        x = descriptor_space(descriptors, det.binary)
-        # enough descriptors per word for the centres to mean something
-        words = int(max(4, min(words, len(x) // 8)))
-        k1 = int(max(2, round(math.sqrt(words))))
-        k2 = int(max(1, math.ceil(words / k1)))
-        top = _kmeans(x, k1, seed)
-        assign = _nearest(x, top, (top**2).sum(1))
-        leaves = np.repeat(top[:, None, :], k2, axis=1).copy()
-        for c in range(len(top)):
-            members = x[assign == c]
-            k = min(k2, len(members))
-            if k >= 2:
-                leaves[c, :k] = _kmeans(members, k, seed + 1 + c)
-        return cls(top.astype(np.float32), leaves.astype(np.float32), det.name)
+        words = max(2, min(int(words), len(descriptors)))
+        depth = 1 if words <= 64 else (2 if words <= 4096 else 3)
+        k = max(2, math.ceil(words ** (1.0 / depth)))
+        if det.binary:
+            bits = np.unpackbits(np.ascontiguousarray(descriptors, np.uint8), axis=1).astype(np.float32)
+        else:
+            bits = np.asarray(descriptors, np.float32)
 
+        def make_centre(rows: np.ndarray) -> np.ndarray:
+            mean = bits[rows].mean(axis=0)
+            return np.packbits(mean >= 0.5) if det.binary else mean  # binary: bit-wise majority
+
+        # breadth-first: groups of sample rows, one per centre of the current level
+        groups = [np.arange(len(bits))]
+        centres, children = [], []
+        for level in range(depth):
+            level_centres, level_groups, kids = [], [], []
+            for g, rows in enumerate(groups):
+                m = len(rows)
+                kk = min(k, m)
+                first = len(level_centres)
+                if kk >= 2 and m > kk:
+                    c, lab = _kmeans(bits[rows], kk, seed + 7919 * level + g)
+                    for j in range(kk):
+                        sub = rows[lab == j]
+                        if len(sub) == 0:
+                            continue
+                        level_centres.append(make_centre(sub))
+                        level_groups.append(sub)
+                else:  # too few samples to split: each becomes its own centre (or the group stays whole)
+                    parts = [rows[i : i + 1] for i in range(m)] if m <= k else [rows]
+                    for sub in parts:
+                        level_centres.append(make_centre(sub))
+                        level_groups.append(sub)
+                kid = list(range(first, len(level_centres)))
+                kids.append(kid + [kid[0]] * (k - len(kid)))
+            if level > 0:
+                children.append(np.array(kids, np.int32))
+            centres.append(np.stack(level_centres))
+            groups = level_groups
+        return cls(tuple(centres), tuple(children), det.name)
+
+    # ------------------------------------------------------------------ quantisation
     def quantize(self, descriptors: np.ndarray) -> np.ndarray:
-        """(N, D) descriptors -> (N,) int64 word ids."""
-        if len(descriptors) == 0:
+        """(N, D) descriptors -> (N,) int64 word ids (leaf indices)."""
+        n = len(descriptors)
+        if n == 0:
             return np.zeros(0, np.int64)
-        x = descriptor_space(descriptors, self.binary)
-        i1 = _nearest(x, self.top, (self.top**2).sum(1))
-        k2 = self.leaves.shape[1]
-        words = np.empty(len(x), np.int64)
-        leaves_sq = (self.leaves**2).sum(2)
-        for c in np.unique(i1):
-            rows = np.nonzero(i1 == c)[0]
-            words[rows] = c * k2 + _nearest(x[rows], self.leaves[c], leaves_sq[c])
-        return words
+        binary = self.binary
+        x = np.ascontiguousarray(descriptors, np.uint8 if binary else np.float32)
+        top = self.centres[0]
+        if binary:
+            cur = _hamming(x, top[None, :, :]).argmin(axis=1)
+        else:
+            cur = ((top**2).sum(1)[None, :] - 2.0 * x @ top.T).argmin(axis=1)
+        rows = np.arange(n)
+        for level in range(1, self.depth):
+            cand = self.children[level - 1][cur]  # (N, k) candidate children
+            c = self.centres[level][cand]
+            if binary:
+                d = _hamming(x, c)
+            else:
+                d = (c**2).sum(2) - 2.0 * np.einsum("nd,nkd->nk", x, c)
+            cur = cand[rows, d.argmin(axis=1)]
+        return cur.astype(np.int64)
 
+    # ------------------------------------------------------------------ persistence
     def to_arrays(self) -> dict[str, np.ndarray]:
-        return {"vocab_top": self.top, "vocab_leaves": self.leaves}
+        out = {f"vocab_centres_{i}": c for i, c in enumerate(self.centres)}
+        out.update({f"vocab_children_{i + 1}": c for i, c in enumerate(self.children)})
+        return out
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], kind: str) -> Vocabulary:
-        try:
-            top, leaves = arrays["vocab_top"], arrays["vocab_leaves"]
-        except KeyError as e:
-            raise MapFormatError(f"map index is incomplete (missing {e.args[0]}); rebuild it with `topomap index`") from None
-        if top.ndim != 2 or leaves.ndim != 3 or leaves.shape[0] != top.shape[0] or leaves.shape[2] != top.shape[1]:
-            raise MapFormatError("map vocabulary arrays have inconsistent shapes; rebuild it with `topomap index`")
-        return cls(top.astype(np.float32), leaves.astype(np.float32), kind)
-
-
-def _kmeans(x: np.ndarray, k: int, seed: int) -> np.ndarray:
-    km = MiniBatchKMeans(n_clusters=k, random_state=seed, n_init=1, batch_size=2048, max_iter=20)
-    km.fit(x)
-    return km.cluster_centers_.astype(np.float32)
+        centres, children = [], []
+        while f"vocab_centres_{len(centres)}" in arrays:
+            centres.append(arrays[f"vocab_centres_{len(centres)}"])
+        for i in range(1, len(centres)):
+            ch = arrays.get(f"vocab_children_{i}")
+            if ch is None or ch.ndim != 2 or len(ch) != len(centres[i - 1]) or (ch.size and ch.max() >= len(centres[i])):
+                raise MapFormatError("map vocabulary is damaged; rebuild the index with `topomap index MAP`")
+            children.append(ch.astype(np.int32))
+        if not centres:
+            raise MapFormatError("map index has no vocabulary; rebuild it with `topomap index MAP`")
+        det = detector(kind)
+        want = (np.uint8, det.descriptor_size) if det.binary else (np.float32, det.descriptor_size)
+        for c in centres:
+            if c.ndim != 2 or c.dtype != want[0] or c.shape[1] != want[1]:
+                raise MapFormatError(f"map vocabulary does not fit {kind} descriptors; rebuild it with `topomap index MAP`")
+        return cls(tuple(centres), tuple(children), det.name)
 
 
 class BowIndex:
-    """TF-IDF bag-of-words index over map nodes.
+    """TF-IDF inverted file over map nodes.
 
-    ``node_ids``: (N,) int64 node id of each row; ``matrix``: (N, V) CSR float32, L2-normalised
-    TF-IDF rows; ``idf``: (V,) float32.
+    Postings are word-major: the nodes containing word ``w`` are ``rows[indptr[w]:indptr[w+1]]``
+    (int32 row numbers, ``node_ids[row]`` is the node id) with ``counts`` (float32 term
+    frequencies). ``idf``: (V,) float32; ``norms``: (N,) float32 norms of the nodes' TF-IDF vectors.
     """
 
-    def __init__(self, vocabulary: Vocabulary, node_ids: np.ndarray, counts: sp.csr_matrix):
+    #: A query ignores words held by more than this fraction of the nodes (once the map has at
+    #: least STOP_MIN_NODES nodes): they are uninformative and own the longest posting lists.
+    STOP_FRACTION = 0.05
+    STOP_MIN_NODES = 2000
+
+    def __init__(self, vocabulary: Vocabulary, node_ids: np.ndarray, indptr: np.ndarray, rows: np.ndarray, counts: np.ndarray):
         self.vocabulary = vocabulary
         self.node_ids = np.asarray(node_ids, np.int64)
-        self.counts = counts.tocsr().astype(np.float32)  # raw word counts per node (kept to re-weight on growth)
+        self.indptr = np.asarray(indptr, np.int64)
+        self.rows = np.asarray(rows, np.int32)
+        self.counts = np.asarray(counts, np.float32)
+        if len(self.indptr) != vocabulary.size + 1 or self.indptr[-1] != len(self.rows) or len(self.rows) != len(self.counts):
+            raise MapFormatError("map index is damaged (posting lists do not add up); rebuild it with `topomap index MAP`")
+        if len(self.rows) and (self.rows.min() < 0 or self.rows.max() >= len(self.node_ids)):
+            raise MapFormatError("map index is damaged (postings name unknown nodes); rebuild it with `topomap index MAP`")
         self._row_of = {int(n): i for i, n in enumerate(self.node_ids)}
         self._reweight()
 
@@ -143,15 +213,33 @@ class BowIndex:
     def build(cls, vocabulary: Vocabulary, features: dict[int, Features]) -> BowIndex:
         """Index the given nodes' features (``{node_id: Features}``)."""
         ids = np.array(sorted(features), np.int64)
-        rows = [cls._counts(vocabulary, features[int(i)]) for i in ids]
-        counts = sp.vstack(rows, format="csr") if rows else sp.csr_matrix((0, vocabulary.size), dtype=np.float32)
-        return cls(vocabulary, ids, counts)
+        word_lists = [vocabulary.quantize(features[int(i)].descriptors) for i in ids]
+        return cls._from_word_lists(vocabulary, ids, word_lists)
 
-    @staticmethod
-    def _counts(vocabulary: Vocabulary, f: Features) -> sp.csr_matrix:
-        words = vocabulary.quantize(f.descriptors)
-        uniq, cnt = np.unique(words, return_counts=True)
-        return sp.csr_matrix((cnt.astype(np.float32), (np.zeros_like(uniq), uniq)), shape=(1, vocabulary.size))
+    @classmethod
+    def _from_word_lists(cls, vocabulary: Vocabulary, ids: np.ndarray, word_lists: list[np.ndarray]) -> BowIndex:
+        words_all, rows_all, counts_all = [], [], []
+        for r, words in enumerate(word_lists):
+            uniq, cnt = np.unique(words, return_counts=True)
+            words_all.append(uniq)
+            rows_all.append(np.full(len(uniq), r, np.int32))
+            counts_all.append(cnt.astype(np.float32))
+        if words_all:
+            w = np.concatenate(words_all)
+            order = np.argsort(w, kind="stable")
+            rows = np.concatenate(rows_all)[order]
+            counts = np.concatenate(counts_all)[order]
+            indptr = np.searchsorted(w[order], np.arange(vocabulary.size + 1))
+        else:
+            rows, counts, indptr = np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros(vocabulary.size + 1, np.int64)
+        return cls(vocabulary, ids, indptr, rows, counts)
+
+    def _word_lists(self) -> list[np.ndarray]:
+        """Per node row, its words repeated by count (inverse of ``_from_word_lists``)."""
+        words = np.repeat(np.arange(self.vocabulary.size), np.diff(self.indptr))
+        order = np.argsort(self.rows, kind="stable")
+        per_row = np.split(order, np.searchsorted(self.rows[order], np.arange(1, len(self.node_ids))))
+        return [np.repeat(words[o], self.counts[o].astype(np.int64)) for o in per_row]
 
     def add(self, features: dict[int, Features]) -> None:
         """Append nodes (ids must be new); IDF weights are recomputed."""
@@ -159,49 +247,68 @@ class BowIndex:
         if clash:
             raise ValueError(f"nodes {clash[:5]} are already indexed")
         ids = np.array(sorted(features), np.int64)
-        rows = [self._counts(self.vocabulary, features[int(i)]) for i in ids]
-        if not rows:
-            return
-        self.counts = sp.vstack([self.counts, *rows], format="csr")
-        self.node_ids = np.concatenate([self.node_ids, ids])
-        self._row_of = {int(n): i for i, n in enumerate(self.node_ids)}
-        self._reweight()
+        lists = self._word_lists() + [self.vocabulary.quantize(features[int(i)].descriptors) for i in ids]
+        fresh = self._from_word_lists(self.vocabulary, np.concatenate([self.node_ids, ids]), lists)
+        self.__dict__.update(fresh.__dict__)
 
     def _reweight(self) -> None:
-        n = max(1, self.counts.shape[0])
-        df = np.bincount(self.counts.indices, minlength=self.vocabulary.size).astype(np.float32)
-        self.idf = np.log((n + 1.0) / (df + 1.0)).astype(np.float32) + 1e-6
-        self.matrix = _normalise_rows(self.counts.multiply(self.idf[None, :]).tocsr())
-        self._csc = self.matrix.T.tocsr()  # word x node: the inverted file
+        n = len(self.node_ids)
+        self.df = np.diff(self.indptr).astype(np.float32)
+        self.idf = np.log((n + 1.0) / (self.df + 1.0)).astype(np.float32)
+        words = np.repeat(np.arange(self.vocabulary.size), np.diff(self.indptr))
+        w = self.counts * self.idf[words]
+        self.norms = np.sqrt(np.bincount(self.rows, weights=w * w, minlength=n)).astype(np.float32)
+        self.norms[self.norms == 0] = 1.0
+        self._weights = (w / self.norms[self.rows]).astype(np.float32)  # posting weights of unit vectors
+        stop = n >= self.STOP_MIN_NODES
+        self.stop_words = self.df > self.STOP_FRACTION * n if stop else np.zeros(self.vocabulary.size, bool)
 
     def __len__(self) -> int:
         return len(self.node_ids)
 
+    def memory_bytes(self) -> int:
+        """Bytes held in RAM by the index (vocabulary + postings + per-word/per-node arrays)."""
+        arrays = [*self.vocabulary.centres, *self.vocabulary.children, self.node_ids, self.indptr, self.rows,
+                  self.counts, self._weights, self.idf, self.df, self.norms, self.stop_words]
+        return int(sum(a.nbytes for a in arrays))
+
     # ------------------------------------------------------------------ queries
-    def vector(self, f: Features) -> sp.csr_matrix:
-        """The (1, V) L2-normalised TF-IDF vector of a query image."""
-        return _normalise_rows(self._counts(self.vocabulary, f).multiply(self.idf[None, :]).tocsr())
+    def query_words(self, f: Features) -> tuple[np.ndarray, np.ndarray]:
+        """The query's (word ids, unit TF-IDF weights)."""
+        words, tf = np.unique(self.vocabulary.quantize(f.descriptors), return_counts=True)
+        q = tf.astype(np.float32) * self.idf[words]
+        norm = float(np.sqrt((q * q).sum()))
+        return words, (q / norm if norm > 0 else q)
 
     def scores(self, f: Features) -> np.ndarray:
         """Cosine similarity of the query to every indexed node: (N,) float32 in row order."""
-        q = self.vector(f)
-        if q.nnz == 0 or len(self) == 0:
-            return np.zeros(len(self), np.float32)
-        # inverted file: only the posting lists of the query's words are touched
-        return np.asarray((self._csc[q.indices].T @ q.data)).ravel().astype(np.float32)
+        n = len(self.node_ids)
+        if n == 0 or len(f) == 0:
+            return np.zeros(n, np.float32)
+        words, q = self.query_words(f)
+        keep = ~self.stop_words[words]
+        words, q = words[keep], q[keep]
+        starts, ends = self.indptr[words], self.indptr[words + 1]
+        lens = ends - starts
+        total = int(lens.sum())
+        if total == 0:
+            return np.zeros(n, np.float32)
+        # gather all touched postings at once (concatenated slices without a Python loop)
+        offsets = np.repeat(starts - np.concatenate(([0], np.cumsum(lens)[:-1])), lens)
+        idx = offsets + np.arange(total)
+        contrib = self._weights[idx] * np.repeat(q, lens)
+        return np.bincount(self.rows[idx], weights=contrib, minlength=n).astype(np.float32)
 
     def shortlist(self, f: Features, k: int, exclude: set[int] | None = None) -> list[tuple[int, float]]:
         """The ``k`` most similar nodes as ``(node_id, score)``, best first (ties by node id)."""
-        s = self.scores(f)
-        return self.top_k(s, k, exclude)
+        return self.top_k(self.scores(f), k, exclude)
 
     def top_k(self, scores: np.ndarray, k: int, exclude: set[int] | None = None) -> list[tuple[int, float]]:
+        """Best ``k`` of a row-ordered score array as ``(node_id, score)``; ``exclude`` holds node ids."""
         if exclude:
             scores = scores.copy()
-            for n in exclude:
-                r = self._row_of.get(int(n))
-                if r is not None:
-                    scores[r] = -np.inf
+            rows = [self._row_of[int(n)] for n in exclude if int(n) in self._row_of]
+            scores[rows] = -np.inf
         k = min(k, len(scores))
         if k <= 0:
             return []
@@ -209,36 +316,26 @@ class BowIndex:
         order = part[np.lexsort((self.node_ids[part], -scores[part]))]
         return [(int(self.node_ids[r]), float(scores[r])) for r in order if np.isfinite(scores[r])]
 
+    def row_of(self, node_id: int) -> int:
+        return self._row_of[int(node_id)]
+
     # ------------------------------------------------------------------ persistence
     def to_arrays(self) -> dict[str, np.ndarray]:
-        c = self.counts
         return {
             **self.vocabulary.to_arrays(),
             "bow_node_ids": self.node_ids,
-            "bow_indptr": c.indptr.astype(np.int64),
-            "bow_indices": c.indices.astype(np.int32),
-            "bow_counts": c.data.astype(np.float32),
+            "bow_indptr": self.indptr,
+            "bow_rows": self.rows,
+            "bow_counts": self.counts.astype(np.uint16),
         }
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], kind: str) -> BowIndex:
         voc = Vocabulary.from_arrays(arrays, kind)
         try:
-            ids = arrays["bow_node_ids"]
-            counts = sp.csr_matrix(
-                (arrays["bow_counts"], arrays["bow_indices"], arrays["bow_indptr"]), shape=(len(ids), voc.size)
-            )
+            return cls(voc, arrays["bow_node_ids"], arrays["bow_indptr"], arrays["bow_rows"], arrays["bow_counts"])
         except KeyError as e:
-            raise MapFormatError(f"map index is incomplete (missing {e.args[0]}); rebuild it with `topomap index`") from None
-        except ValueError as e:
-            raise MapFormatError(f"map index is damaged ({e}); rebuild it with `topomap index`") from None
-        return cls(voc, ids, counts)
-
-
-def _normalise_rows(m: sp.csr_matrix) -> sp.csr_matrix:
-    norms = np.sqrt(np.asarray(m.multiply(m).sum(axis=1)).ravel())
-    norms[norms == 0] = 1.0
-    return sp.diags(1.0 / norms).dot(m).tocsr().astype(np.float32)
+            raise MapFormatError(f"map index is incomplete (missing {e.args[0]}); rebuild it with `topomap index MAP`") from None
 
 
 def thumbnail_descriptor(image: np.ndarray, size: tuple[int, int] = (32, 24), patch: int = 8) -> np.ndarray:
