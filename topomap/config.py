@@ -21,6 +21,7 @@ __all__ = [
     "FeatureConfig",
     "MatchConfig",
     "BuildConfig",
+    "LocalizeConfig",
     "BUILD_PRESETS",
     "build_preset",
     "to_dict",
@@ -107,6 +108,31 @@ class BuildConfig:
             raise ConfigError("loop_shortlist_k must be at least 1")
         if self.vocabulary_words < 16:
             raise ConfigError("vocabulary_words must be at least 16")
+
+
+@dataclass(frozen=True)
+class LocalizeConfig:
+    """Frame -> node (see :mod:`topomap.localize`). Scores are in robust z-units of appearance."""
+
+    descriptor: str = "auto"  # auto | fused | bow | thumbnail (topomap.localize.DESCRIPTORS)
+    shortlist_k: int = 10  # nodes verified geometrically per query
+    inlier_weight: float = 0.2  # score added per verified inlier [z-units]
+    beta: float = 0.5  # sharpness of the softmax turning scores into probabilities [1/z-unit]
+    min_confidence: float = 0.5  # probability on the answer (and neighbours) below which it is "unknown"
+    # temporal filter (sequence mode)
+    motion_hops: int = 2  # belief moves at most this many edges per frame
+    hop_sigma: float = 1.0  # Gaussian width of the motion model [edges]
+    jump_probability: float = 1e-3  # mass spread uniformly each frame: recovery after kidnapping
+
+    def __post_init__(self) -> None:
+        if self.shortlist_k < 0:
+            raise ConfigError("shortlist_k must be >= 0")
+        if not 0.0 <= self.min_confidence <= 1.0:
+            raise ConfigError(f"min_confidence={self.min_confidence} must lie in [0, 1]")
+        if not 0.0 <= self.jump_probability < 1.0:
+            raise ConfigError("jump_probability must lie in [0, 1)")
+        if self.beta <= 0 or self.hop_sigma <= 0 or self.motion_hops < 0:
+            raise ConfigError("beta and hop_sigma must be positive, motion_hops >= 0")
 
 
 BUILD_PRESETS: dict[str, BuildConfig] = {

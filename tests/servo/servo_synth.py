@@ -89,3 +89,97 @@ def matches(points, cur, goal, rng, *, noise_px=0.5, outliers=0.0, max_points=30
 def median_goal_depth(points, goal, idx, cam_height=CAM_HEIGHT) -> float:
     """The median-depth scale lambda of a set of points seen from the goal."""
     return float(np.median(to_camera(points[idx], goal, cam_height)[:, 2]))
+
+
+# ----------------------------------------------------------------------------- kinematics
+def integrate(pose, u, dt: float):
+    """Exact pose after ``dt`` under constant effective input ``u = (v_f, v_h, omega)``:
+    ``xi' = G(theta) u`` (THESIS.md eq. 1.7), the SE(2) exponential."""
+    x, z, th = pose
+    v_f, v_h, w = u
+    a = w * dt
+    if abs(a) < 1e-9:
+        dxb, dzb = v_f * dt, v_h * dt
+    else:
+        s, c1 = math.sin(a), 1.0 - math.cos(a)
+        dxb, dzb = (s * v_f - c1 * v_h) / w, (c1 * v_f + s * v_h) / w
+    c, s = math.cos(th), math.sin(th)
+    return (x + c * dxb - s * dzb, z + s * dxb + c * dzb, th + a)
+
+
+class Disturbance:
+    """Unknown input disturbance of realistic size: ``u_eff = (1 - slip) u + d(t)``.
+
+    ``bias`` (d_f, d_h, d_omega) constant; ``sin_amp`` amplitudes at ``sin_hz``; ``slip`` fraction lost
+    on every channel; ``walk`` random-walk intensities per channel [unit/sqrt(s)], seeded, reflected
+    at ``walk_max``.
+    """
+
+    def __init__(self, bias=(0.0, 0.0, 0.0), sin_amp=(0.0, 0.0, 0.0), sin_hz=0.1, slip=0.0, walk=(0.0, 0.0, 0.0),
+                 walk_max=(0.03, 0.03, 0.15), seed=0):
+        self.bias = np.asarray(bias, float)
+        self.sin_amp = np.asarray(sin_amp, float)
+        self.sin_hz = sin_hz
+        self.slip = slip
+        self.walk = np.asarray(walk, float)
+        self.walk_max = np.asarray(walk_max, float)
+        self.rng = np.random.default_rng(seed)
+        self.rw = np.zeros(3)
+
+    def advance(self, dt):
+        if self.walk.any():  # a random walk kept within realistic bounds (reflecting at +-walk_max)
+            self.rw = self.rw + self.rng.normal(0, 1, 3) * self.walk * math.sqrt(dt)
+            self.rw = np.where(np.abs(self.rw) > self.walk_max, np.sign(self.rw) * (2 * self.walk_max - np.abs(self.rw)), self.rw)
+
+    def effective(self, u, t, unicycle: bool):
+        d = self.bias + self.sin_amp * math.sin(2 * math.pi * self.sin_hz * t) + self.rw
+        out = (1.0 - self.slip) * np.asarray(u, float) + d
+        if unicycle:
+            out[1] = 0.0
+        return out
+
+
+#: Disturbance presets of realistic size (task: d_omega ~0.15 rad/s, slip 15 %, forward bias 0.04 m/s).
+DISTURBANCES = {
+    "none": dict(),
+    "omega": dict(bias=(0.0, 0.0, 0.15)),
+    "bias": dict(bias=(0.04, 0.03, 0.15)),
+    "sinusoidal": dict(sin_amp=(0.02, 0.02, 0.15), sin_hz=0.05),
+    "slip": dict(slip=0.15),
+    "walk": dict(walk=(0.01, 0.01, 0.05)),
+    "harsh": dict(bias=(0.04, 0.03, 0.15), sin_amp=(0.01, 0.01, 0.05), sin_hz=0.05, slip=0.15, walk=(0.005, 0.005, 0.02)),
+}
+
+
+def disturbance(name: str, seed: int = 0) -> Disturbance:
+    return Disturbance(**DISTURBANCES[name], seed=seed)
+
+
+def drive(pose, u_cmd, dist: Disturbance, t: float, dt: float, unicycle: bool, substeps: int = 5):
+    """Apply the command for ``dt`` with the disturbance sampled at ``substeps`` instants."""
+    h = dt / substeps
+    for k in range(substeps):
+        dist.advance(h)
+        pose = integrate(pose, dist.effective(u_cmd, t + k * h, unicycle), h)
+    return pose
+
+
+def servo_episode(servo, points, start, goal, dist: Disturbance, rng, *, dt=0.1, t_max=60.0, noise_px=0.5,
+                  outliers=0.1, max_points=150, stop_when_converged=False, camera=CAMERA):
+    """Closed loop from images only: project the points into the current and goal cameras, add pixel
+    noise and outliers, run ``servo.step``, drive the vehicle with the disturbance. Returns the final
+    pose in the goal frame and the list of outputs."""
+    from topomap.motion import VehicleKind
+
+    pose, last, t, outs = start, None, 0.0, []
+    unicycle = servo.vehicle is VehicleKind.UNICYCLE
+    while t < t_max:
+        cur_px, goal_px, _ = matches(points, pose, goal, rng, noise_px=noise_px, outliers=outliers,
+                                     max_points=max_points, camera=camera)
+        out = servo.step(cur_px, goal_px, camera, dt, last)
+        outs.append(out)
+        if stop_when_converged and out.converged:
+            break
+        pose = drive(pose, out.command.as_tuple(), dist, t, dt, unicycle)
+        last, t = out.command, t + dt
+    return relative(pose, goal), outs

@@ -1,0 +1,260 @@
+"""Relative pose from two images (topomap.servo.geometry), on synthetic 3D points projected into two
+camera poses (THESIS.md section 3): planar essential matrix, minimal solver, RANSAC, refinement, scale
+conventions, degeneracies, and the 2-point dynamic mode."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from servo_synth import CAM_HEIGHT, CAMERA, matches, median_goal_depth, relative, room_points, to_camera
+
+from topomap.config import RelativePoseConfig
+from topomap.errors import ConfigError
+from topomap.motion import Command
+from topomap.servo.geometry import (
+    PoseStatus,
+    TwoPointTracker,
+    decompose_planar_essential,
+    essential_design_matrix,
+    planar_essential,
+    relative_pose,
+    relative_pose_normalized,
+    scale_convention,
+    solve_planar_essential_3pt,
+    two_point_candidates,
+    wrap_angle,
+)
+
+POINTS = room_points(np.random.default_rng(42))
+GOAL = (0.4, -0.2, 0.3)
+
+
+def in_world(rel, goal=GOAL):
+    """A pose given in the goal frame (x forward, z left, theta) -> world."""
+    c, s = math.cos(goal[2]), math.sin(goal[2])
+    return (goal[0] + c * rel[0] - s * rel[1], goal[1] + s * rel[0] + c * rel[1], goal[2] + rel[2])
+
+
+def normalized_pair(rel, rng, noise_px=0.0, **kw):
+    cur = in_world(rel)
+    cp, gp, idx = matches(POINTS, cur, GOAL, rng, noise_px=noise_px, **kw)
+    return CAMERA.normalize(cp), CAMERA.normalize(gp), idx
+
+
+# ---------------------------------------------------------------------------- planar E
+def test_planar_essential_has_four_nonzero_entries_and_satisfies_the_epipolar_constraint():
+    rng = np.random.default_rng(0)
+    rel = (-0.8, 0.3, 0.25)
+    cur_n, goal_n, _ = normalized_pair(rel, rng)
+    # X_cur = R_y(theta)(X_goal - c); t = -R c; in the camera frame c = (-z, 0, x)
+    theta = rel[2]
+    c = np.array([-rel[1], 0.0, rel[0]])
+    R = np.array([[math.cos(theta), 0, math.sin(theta)], [0, 1, 0], [-math.sin(theta), 0, math.cos(theta)]])
+    t = -R @ c
+    E = planar_essential(theta, (t[0], t[2]))
+    assert np.count_nonzero(np.abs(E) > 1e-12) == 4
+    assert E[0, 0] == E[0, 2] == E[1, 1] == E[2, 0] == E[2, 2] == 0
+    mc = np.column_stack([cur_n, np.ones(len(cur_n))])
+    mg = np.column_stack([goal_n, np.ones(len(goal_n))])
+    assert np.max(np.abs(np.einsum("ij,jk,ik->i", mc, E, mg))) < 1e-12
+    # the design matrix is the same constraint, linear in (e1, e2, e3, e4)
+    e = np.array([E[0, 1], E[1, 0], E[1, 2], E[2, 1]])
+    assert np.max(np.abs(essential_design_matrix(goal_n, cur_n) @ e)) < 1e-12
+
+
+def test_decomposition_recovers_theta_and_translation_up_to_sign():
+    rng = np.random.default_rng(1)
+    for _ in range(100):
+        theta = rng.uniform(-math.pi, math.pi)
+        t = rng.normal(size=2)
+        t /= np.linalg.norm(t)
+        E = planar_essential(theta, t) * rng.choice([-1.0, 1.0]) * rng.uniform(0.1, 10)
+        th, tt = decompose_planar_essential(np.array([[E[0, 1], E[1, 0], E[1, 2], E[2, 1]]]))
+        assert wrap_angle(th[0] - theta) == pytest.approx(0.0, abs=1e-9)
+        assert abs(abs(float(tt[0] @ t)) - 1.0) < 1e-9
+
+
+def test_three_point_minimal_solver_is_exact_on_noise_free_points():
+    rng = np.random.default_rng(2)
+    rel = (-1.2, -0.4, -0.35)
+    cur_n, goal_n, _ = normalized_pair(rel, rng)
+    # three points well off the horizon and apart in the image (a well-conditioned sample)
+    far = np.argsort(-np.abs(goal_n[:, 1]))[:40]
+    pick = far[[np.argmin(goal_n[far, 0]), np.argmax(goal_n[far, 0]), np.argmin(np.abs(goal_n[far, 0]))]]
+    A = essential_design_matrix(goal_n[pick], cur_n[pick])
+    e = solve_planar_essential_3pt(A[None])
+    th, _ = decompose_planar_essential(e)
+    assert wrap_angle(th[0] - rel[2]) == pytest.approx(0.0, abs=1e-9)
+
+
+# ---------------------------------------------------------------------------- relative pose
+REL_POSES = [(-1.5, 0.4, 0.3), (-0.6, -0.5, -0.4), (0.6, 0.3, 0.2), (-2.5, 1.0, -0.5), (-0.3, 0.0, 0.05)]
+
+
+@pytest.mark.parametrize("rel", REL_POSES)
+def test_relative_pose_recovers_heading_direction_and_scaled_distance(rel):
+    rng = np.random.default_rng(3)
+    cur = in_world(rel)
+    cp, gp, idx = matches(POINTS, cur, GOAL, rng, noise_px=0.5, outliers=0.2, max_points=250)
+    rp = relative_pose(cp, gp, CAMERA)
+    assert rp.status is PoseStatus.OK
+    true = relative(cur, GOAL)
+    lam = median_goal_depth(POINTS, GOAL, idx[idx >= 0])  # the median-depth convention
+    assert abs(math.degrees(wrap_angle(rp.theta - true[2]))) < 0.5
+    assert abs(math.degrees(wrap_angle(rp.phi - math.atan2(true[1], true[0])))) < 3.0
+    assert rp.rho_s == pytest.approx(math.hypot(true[0], true[1]) / lam, rel=0.08)
+    # polar coordinates of eq. 1.9
+    assert rp.beta == pytest.approx(wrap_angle(rp.phi - rp.theta + math.pi))
+    # outliers are rejected, true matches kept
+    assert np.mean(idx[rp.inlier_mask] >= 0) > 0.98
+    assert rp.inliers > 0.8 * np.sum(idx >= 0)
+    assert rp.residual_px < 1.5
+
+
+def test_camera_height_scale_is_metric_up_to_the_camera_height():
+    rng = np.random.default_rng(4)
+    cfg = RelativePoseConfig(scale="camera_height")
+    for rel in [(-1.5, 0.4, 0.3), (-0.6, -0.5, -0.4), (-2.0, 0.0, 0.0)]:
+        cur = in_world(rel)
+        cp, gp, _ = matches(POINTS, cur, GOAL, rng, noise_px=0.5, outliers=0.1, max_points=300)
+        rp = relative_pose(cp, gp, CAMERA, cfg)
+        assert rp.status is PoseStatus.OK and rp.scale.value == "camera_height"
+        assert rp.rho_s * CAM_HEIGHT == pytest.approx(math.hypot(rel[0], rel[1]), rel=0.1)
+
+
+def test_accuracy_over_random_poses():
+    # a statistical check over many scenes: median errors stay tight
+    rng = np.random.default_rng(5)
+    th_err, dist_err = [], []
+    for _ in range(25):
+        rel = (rng.uniform(-2.0, 0.5), rng.uniform(-1.0, 1.0), rng.uniform(-0.5, 0.5))
+        cur = in_world(rel)
+        cp, gp, idx = matches(POINTS, cur, GOAL, rng, noise_px=0.5, outliers=0.25, max_points=200)
+        rp = relative_pose(cp, gp, CAMERA)
+        if rp.status is not PoseStatus.OK:
+            assert math.hypot(rel[0], rel[1]) < 0.05  # only a tiny translation may be unobservable
+            continue
+        lam = median_goal_depth(POINTS, GOAL, idx[idx >= 0])
+        th_err.append(abs(math.degrees(wrap_angle(rp.theta - rel[2]))))
+        dist_err.append(abs(rp.rho_s * lam - math.hypot(rel[0], rel[1])))
+    assert len(th_err) >= 23
+    assert np.median(th_err) < 0.25 and np.max(th_err) < 2.0
+    assert np.median(dist_err) < 0.05
+
+
+def test_pure_rotation_reports_theta_only():
+    rng = np.random.default_rng(6)
+    for theta in (0.0, 0.2, -0.45):
+        cur = in_world((0.0, 0.0, theta))
+        cp, gp, idx = matches(POINTS, cur, GOAL, rng, noise_px=0.5, outliers=0.2)
+        rp = relative_pose(cp, gp, CAMERA)
+        assert rp.status is PoseStatus.PURE_ROTATION
+        assert rp.has_heading and not rp.has_translation
+        assert abs(math.degrees(rp.theta - theta)) < 0.1
+        assert math.isnan(rp.x_s) and math.isnan(rp.z_s)
+        assert rp.f_ratio < RelativePoseConfig().rotation_f_ratio
+
+
+def test_small_translation_is_still_observed():
+    rng = np.random.default_rng(7)
+    cur = in_world((-0.1, 0.05, 0.1))
+    cp, gp, _ = matches(POINTS, cur, GOAL, rng, noise_px=0.5, outliers=0.1)
+    rp = relative_pose(cp, gp, CAMERA)
+    assert rp.status is PoseStatus.OK and rp.f_ratio > 5
+
+
+def test_too_few_points_and_too_few_inliers():
+    rng = np.random.default_rng(8)
+    cp, gp, _ = matches(POINTS, in_world((-1.0, 0.2, 0.1)), GOAL, rng, noise_px=0.5)
+    assert relative_pose(cp[:2], gp[:2], CAMERA).status is PoseStatus.TOO_FEW_POINTS
+    assert relative_pose(np.zeros((0, 2)), np.zeros((0, 2)), CAMERA).status is PoseStatus.TOO_FEW_POINTS
+    # random "matches": no planar motion explains them
+    junk = rng.uniform([0, 0], [319, 239], (150, 2))
+    rp = relative_pose(junk, rng.uniform([0, 0], [319, 239], (150, 2)), CAMERA)
+    assert rp.status is PoseStatus.TOO_FEW_INLIERS and not rp.has_heading
+    assert math.isnan(rp.theta)
+
+
+def test_points_on_the_horizon_are_degenerate():
+    # every point at camera height: y = 0 in both images, the epipolar constraint is 0 = 0
+    rng = np.random.default_rng(9)
+    flat = POINTS.copy()
+    flat[:, 2] = CAM_HEIGHT
+    cp, gp, _ = matches(flat, in_world((-1.0, 0.2, 0.1)), GOAL, rng, noise_px=0.0)
+    rp = relative_pose(cp, gp, CAMERA)
+    assert rp.status is PoseStatus.DEGENERATE
+
+
+def test_bad_input_is_a_clear_error():
+    with pytest.raises(ConfigError, match="differ in length"):
+        relative_pose(np.zeros((5, 2)), np.zeros((4, 2)), CAMERA)
+    with pytest.raises(ConfigError, match="choose one of: camera_height, median_depth"):
+        RelativePoseConfig(scale="metric")
+    with pytest.raises(ConfigError, match="choose one of"):
+        scale_convention("nope")
+    with pytest.raises(ConfigError):
+        RelativePoseConfig(min_inliers=2)
+
+
+def test_deterministic_and_nan_tolerant():
+    rng = np.random.default_rng(10)
+    cp, gp, _ = matches(POINTS, in_world((-1.0, 0.3, 0.2)), GOAL, rng, noise_px=0.5, outliers=0.2)
+    a, b = relative_pose(cp, gp, CAMERA), relative_pose(cp, gp, CAMERA)
+    assert (a.theta, a.x_s, a.z_s) == (b.theta, b.x_s, b.z_s)
+    assert np.array_equal(a.inlier_mask, b.inlier_mask)
+    cp2 = cp.copy()
+    cp2[0] = np.nan
+    c = relative_pose(cp2, gp, CAMERA)
+    assert c.status is PoseStatus.OK and not c.inlier_mask[0] and len(c.inlier_mask) == len(cp)
+
+
+def test_normalized_entry_point_matches_the_pixel_one():
+    rng = np.random.default_rng(11)
+    cp, gp, _ = matches(POINTS, in_world((-0.9, -0.2, -0.1)), GOAL, rng, noise_px=0.5)
+    a = relative_pose(cp, gp, CAMERA)
+    b = relative_pose_normalized(CAMERA.normalize(cp), CAMERA.normalize(gp), CAMERA.fx)
+    assert a.theta == pytest.approx(b.theta) and a.x_s == pytest.approx(b.x_s)
+
+
+# ---------------------------------------------------------------------------- 2 points
+def test_two_points_give_at_most_two_solutions_one_of_them_true():
+    rng = np.random.default_rng(12)
+    found = 0
+    for _ in range(60):
+        rel = (rng.uniform(-2, 0), rng.uniform(-1, 1), rng.uniform(-0.4, 0.4))
+        cur_n, goal_n, idx = normalized_pair(rel, rng)
+        ok = (np.abs(cur_n[:, 1]) > 0.05) & (np.abs(goal_n[:, 1]) > 0.05)
+        sel = rng.choice(np.flatnonzero(ok), 2, replace=False)
+        cands = two_point_candidates(goal_n[sel], cur_n[sel])
+        assert 1 <= len(cands) <= 2
+        depth = to_camera(POINTS[idx[sel]], GOAL)[:, 2]
+        lam = 1.0 / np.mean(1.0 / depth)  # |c| / lambda = mean of |c| / Z_i
+        truth = (rel[2], rel[0] / lam, rel[1] / lam)
+        found += any(np.allclose(c, truth, atol=1e-7) for c in cands)
+    assert found == 60
+
+
+def test_two_point_tracker_settles_on_the_true_solution_while_driving():
+    # two features seen from a unicycle driving forward while turning: the static problem has two
+    # solutions; the motion tells them apart (THESIS.md section 3, dynamic AS)
+    pts = np.array([[4.0, 1.0, 0.1], [5.0, -1.5, 2.2]])
+    goal = (0.0, 0.0, 0.0)
+    tracker = TwoPointTracker()
+    pose, dt, cmd = (-1.5, -0.3, 0.25), 0.1, Command(0.3, 0.0, -0.1)
+    statuses, errors = [], []
+    for k in range(20):
+        gl, cur = to_camera(pts, goal), to_camera(pts, pose)
+        g, c = gl[:, :2] / gl[:, 2:], cur[:, :2] / cur[:, 2:]
+        if k == 0:
+            assert len(two_point_candidates(g, c)) == 2
+        rp = tracker.update(g, c, cmd if k else None, dt)
+        statuses.append(rp.status)
+        errors.append(abs(rp.theta - relative(pose, goal)[2]))
+        pose = (pose[0] + cmd.v_f * dt * math.cos(pose[2] + cmd.omega * dt / 2),
+                pose[1] + cmd.v_f * dt * math.sin(pose[2] + cmd.omega * dt / 2), pose[2] + cmd.omega * dt)
+    assert statuses[0] is PoseStatus.AMBIGUOUS
+    settled = statuses.index(PoseStatus.OK)
+    assert settled <= 5 and all(s is PoseStatus.OK for s in statuses[settled:])
+    assert max(errors[settled:]) < 1e-9

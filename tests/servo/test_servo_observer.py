@@ -1,0 +1,77 @@
+"""Disturbance observer (topomap.servo.observer): what the images make observable."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from topomap.config import ObserverConfig
+from topomap.errors import ConfigError
+from topomap.motion import Command
+from topomap.servo.observer import DisturbanceObserver
+
+
+def run_heading(d_omega, omega_cmd, steps=100, dt=0.1, noise=0.002, seed=0, obs=None, theta0=0.3):
+    rng = np.random.default_rng(seed)
+    obs = obs or DisturbanceObserver()
+    theta, last = theta0, None
+    for k in range(steps):
+        d = d_omega(k * dt) if callable(d_omega) else d_omega
+        est = obs.update(dt, last, theta + rng.normal(0, noise), None)
+        cmd = Command(0.0, 0.0, omega_cmd(k) if callable(omega_cmd) else omega_cmd)
+        theta += (cmd.omega + d) * dt
+        last = cmd
+    return est, obs
+
+
+def test_constant_d_omega_is_estimated_from_the_heading_rate():
+    est, _ = run_heading(0.15, lambda k: 0.3 * math.sin(0.2 * k))
+    assert est.d_omega == pytest.approx(0.15, abs=0.01)
+    assert est.ready
+
+
+def test_sinusoidal_d_omega_is_tracked():
+    est, _ = run_heading(lambda t: 0.15 * math.sin(2 * math.pi * 0.05 * t), 0.0, steps=300)
+    t = 299 * 0.1
+    assert est.d_omega == pytest.approx(0.15 * math.sin(2 * math.pi * 0.05 * t), abs=0.04)
+
+
+def test_retarget_keeps_the_disturbance_and_takes_the_new_heading():
+    est, obs = run_heading(0.1, 0.0)
+    obs.reset_target()
+    assert not obs.estimate.ready or math.isnan(obs.estimate.theta)
+    est = obs.update(0.1, Command(), 1.2, None)  # the new goal's heading is far from the old one
+    assert est.theta == pytest.approx(1.2)
+    assert est.d_omega == pytest.approx(0.1, abs=0.015)
+
+
+def test_a_single_wrong_heading_is_rejected_but_a_persistent_change_is_accepted():
+    est, obs = run_heading(0.0, 0.0)
+    th = est.theta
+    est = obs.update(0.1, Command(), th + 1.0, None)
+    assert est.rejected == 1 and est.theta == pytest.approx(th, abs=0.01)
+    for _ in range(3):
+        est = obs.update(0.1, Command(), th + 1.0, None)
+    assert est.theta == pytest.approx(th + 1.0, abs=0.01) and est.rejected == 0
+
+
+def test_scaled_speed_ratio_is_observed_from_consecutive_positions():
+    # nu = kappa v + mu with kappa = (1 - slip) / lambda: what the scale-free law needs
+    lam, slip, dt = 2.0, 0.1, 0.1
+    rng = np.random.default_rng(1)
+    obs = DisturbanceObserver(kappa0=1 / 3.0)
+    pos, theta, last = np.array([-3.0, 0.5]), 0.2, None
+    for k in range(200):
+        est = obs.update(dt, last, theta, pos / lam + rng.normal(0, 0.002, 2))
+        cmd = Command(0.1 + 0.15 * (1 + math.sin(0.1 * k)), 0.0, 0.0)
+        pos = pos + (1 - slip) * cmd.v_f * dt * np.array([math.cos(theta), math.sin(theta)])
+        last = cmd
+    assert est.kappa == pytest.approx((1 - slip) / lam, rel=0.1)
+    assert abs(est.mu_f) < 0.01
+
+
+def test_config_is_validated():
+    with pytest.raises(ConfigError, match="must be positive"):
+        ObserverConfig(heading_noise_rad=0.0)

@@ -1,0 +1,168 @@
+"""Disturbance observer for appearance servoing (THESIS.md section 2 "Observer", section 3).
+
+Input: the relative pose reconstructed from the images at each control step and the command applied
+over the previous step. Images give the relative heading ``theta`` without scale and the position only
+up to the scale ``lambda``; the actuators add unknown disturbances ``u_eff = (1 - slip) u + d``
+(THESIS.md eq. 1.7-1.8). What this makes observable, and what is estimated here:
+
+* ``d_omega`` — the heading obeys ``theta' = omega + d_omega`` with no scale involved, so a Kalman
+  filter on ``(theta, d_omega)`` (random-walk disturbance) estimates it: a linear observer, the
+  degenerate case of the §2.5 construction where ``Phi`` is linear and its Jacobian constant.
+  Multiplicative slip on the turn rate shows up as a slowly varying part of ``d_omega``.
+* the scaled effective velocity ``nu = (u_eff)_lin / lambda`` — from consecutive scaled positions,
+  modelled as ``nu = kappa u_lin + mu``: ``kappa = (1 - slip) / lambda`` and ``mu = d_lin / lambda``
+  cannot be separated from the scale (the scale direction of THESIS.md section 2), but ``kappa``
+  gives the observable ratio ``r = (v + d_v) / e`` of the scale-free law. A Kalman filter over the
+  parameters ``(kappa, mu_f, mu_h)``.
+
+The forward disturbance itself is rejected by integral action in the laws.
+Hand-written 2- and 3-state Kalman filters (a few lines of numpy; no library needed for this size).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from topomap.config import ObserverConfig
+from topomap.motion import Command
+
+__all__ = ["DisturbanceEstimate", "DisturbanceObserver"]
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+@dataclass(frozen=True)
+class DisturbanceEstimate:
+    """What the observer currently believes.
+
+    ``d_omega`` [rad/s] and its standard deviation; ``theta`` filtered relative heading [rad] (NaN
+    before the first measurement); ``kappa`` scaled speed per commanded speed [1/m]
+    (``(1 - slip) / lambda``); ``mu_f, mu_h`` scaled drift forward / leftward [lambda/s];
+    ``rejected``: consecutive heading measurements rejected as outliers.
+    """
+
+    d_omega: float = 0.0
+    d_omega_std: float = math.inf
+    theta: float = math.nan
+    kappa: float = math.nan
+    mu_f: float = 0.0
+    mu_h: float = 0.0
+    rejected: int = 0
+
+    @property
+    def ready(self) -> bool:
+        """At least two consistent headings have been seen (d_omega is estimated)."""
+        return math.isfinite(self.d_omega_std) and self.d_omega_std < 0.1
+
+
+class DisturbanceObserver:
+    """Kalman filters over ``(theta, d_omega)`` and ``(kappa, mu_f, mu_h)``; see the module docstring.
+
+    ``kappa0``: prior scaled speed per commanded speed, ``1 / nominal_scale_m``.
+    """
+
+    def __init__(self, config: ObserverConfig | None = None, kappa0: float = 1.0 / 3.0):
+        self.cfg = config or ObserverConfig()
+        self.kappa0 = float(kappa0)
+        # heading filter: x = [theta, d_omega]
+        self._x = np.array([math.nan, 0.0])
+        self._P = np.diag([1.0, 0.2**2])
+        self._has_theta = False
+        self._rejected = 0
+        # forward filter: p = [kappa, mu_f, mu_h]
+        self._p = np.array([self.kappa0, 0.0, 0.0])
+        self._Pp = np.diag([(0.5 * self.kappa0) ** 2, (0.05 * self.kappa0) ** 2, (0.05 * self.kappa0) ** 2])
+        self._last_pos: np.ndarray | None = None
+        self._last_theta: float | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+    def reset_target(self) -> None:
+        """A new goal image: heading and position references jump; the disturbances stay."""
+        self._has_theta = False
+        self._x[0] = math.nan
+        self._P[0, :] = self._P[:, 0] = 0.0
+        self._P[0, 0] = 1.0
+        self._last_pos, self._last_theta = None, None
+        self._rejected = 0
+
+    # ------------------------------------------------------------------ one step
+    def update(
+        self,
+        dt: float,
+        applied: Command | None,
+        theta: float | None,
+        position_s: np.ndarray | None = None,
+    ) -> DisturbanceEstimate:
+        """Advance by ``dt`` [s] under the command ``applied`` since the last call, then correct with
+        the measured relative heading ``theta`` [rad] and scaled position ``position_s`` (2,) (None
+        when the images did not give them)."""
+        cfg = self.cfg
+        if self._has_theta and applied is not None and dt > 0:
+            F = np.array([[1.0, dt], [0.0, 1.0]])
+            self._x = F @ self._x + np.array([applied.omega * dt, 0.0])
+            Q = np.diag([(0.2 * cfg.heading_noise_rad) ** 2 * dt, cfg.d_omega_walk**2 * dt])
+            self._P = F @ self._P @ F.T + Q
+        if theta is not None and math.isfinite(theta):
+            if not self._has_theta:
+                self._x[0] = theta
+                self._P[0, 0] = cfg.heading_noise_rad**2
+                self._P[0, 1] = self._P[1, 0] = 0.0
+                self._has_theta = True
+                self._rejected = 0
+            else:
+                innov = _wrap(theta - self._x[0])
+                S = self._P[0, 0] + cfg.heading_noise_rad**2
+                if innov * innov > 25.0 * S and self._rejected < 3:
+                    self._rejected += 1  # a wrong reconstruction; after 3 in a row, believe it
+                else:
+                    if innov * innov > 25.0 * S:  # persistent: the reference really moved
+                        self._x[0] = theta
+                        self._P[0, 0] = cfg.heading_noise_rad**2
+                        self._P[0, 1] = self._P[1, 0] = 0.0
+                    else:
+                        K = self._P[:, 0] / S
+                        self._x = self._x + K * innov
+                        self._P = self._P - np.outer(K, self._P[0, :])
+                    self._rejected = 0
+            self._x[0] = _wrap(self._x[0])
+            self._x[1] = max(-cfg.d_omega_max, min(cfg.d_omega_max, self._x[1]))
+        # forward parameters from the scaled displacement
+        if position_s is not None and np.all(np.isfinite(position_s)) and theta is not None:
+            pos = np.asarray(position_s, dtype=float)
+            if self._last_pos is not None and applied is not None and dt > 0:
+                self._forward_update(pos - self._last_pos, 0.5 * (self._last_theta + theta) if abs(_wrap(theta - self._last_theta)) < 1.0 else theta, applied, dt)
+            self._last_pos, self._last_theta = pos, float(theta)
+        else:
+            self._last_pos, self._last_theta = None, None
+        return self.estimate
+
+    def _forward_update(self, step: np.ndarray, theta_mid: float, applied: Command, dt: float) -> None:
+        cfg = self.cfg
+        self._Pp = self._Pp + np.eye(3) * (cfg.forward_walk * self.kappa0) ** 2 * dt
+        c, s = math.cos(theta_mid), math.sin(theta_mid)
+        nu = np.array([c * step[0] + s * step[1], -s * step[0] + c * step[1]]) / dt  # body frame
+        H = np.array([[applied.v_f, 1.0, 0.0], [applied.v_h, 0.0, 1.0]])
+        Rm = np.eye(2) * 2.0 * (cfg.position_noise_s / dt) ** 2
+        S = H @ self._Pp @ H.T + Rm
+        K = self._Pp @ H.T @ np.linalg.inv(S)
+        self._p = self._p + K @ (nu - H @ self._p)
+        self._Pp = (np.eye(3) - K @ H) @ self._Pp
+        self._p[0] = max(0.05 * self.kappa0, self._p[0])  # a positive gain, whatever the noise says
+
+    # ------------------------------------------------------------------ view
+    @property
+    def estimate(self) -> DisturbanceEstimate:
+        return DisturbanceEstimate(
+            d_omega=float(self._x[1]),
+            d_omega_std=float(math.sqrt(max(self._P[1, 1], 0.0))) if self._has_theta else math.inf,
+            theta=float(self._x[0]) if self._has_theta else math.nan,
+            kappa=float(self._p[0]),
+            mu_f=float(self._p[1]),
+            mu_h=float(self._p[2]),
+            rejected=self._rejected,
+        )

@@ -1,0 +1,154 @@
+"""``AppearanceServo``: matched points in, velocity command out (THESIS.md section 3).
+
+One control step chains the three parts of :mod:`topomap.servo`:
+
+1. :func:`~topomap.servo.geometry.relative_pose` — scaled planar pose of the current camera w.r.t.
+   the goal camera from the matched pixels;
+2. :class:`~topomap.servo.observer.DisturbanceObserver` — ``d_omega`` from the heading rate, the
+   scaled forward speed ratio for the scale-free law;
+3. :func:`~topomap.servo.laws.unicycle_law` or :func:`~topomap.servo.laws.omni_law`.
+
+The servo never sees a ground-truth pose: only pixels, intrinsics, the control period and the command
+that was actually applied. It holds the integral state and the observer between steps; call
+:meth:`AppearanceServo.retarget` when the goal image changes (the next subgoal of a route) so the pose
+references restart while the disturbance estimates carry over.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from topomap.camera import CameraIntrinsics
+from topomap.config import ServoConfig
+from topomap.errors import ConfigError
+from topomap.motion import STOP, Command, VehicleKind, vehicle_kind
+from topomap.servo.geometry import PoseStatus, RelativePose, relative_pose
+from topomap.servo.laws import LawState, omni_law, unicycle_law
+from topomap.servo.observer import DisturbanceEstimate, DisturbanceObserver
+
+__all__ = ["ServoStatus", "ServoOutput", "AppearanceServo"]
+
+log = logging.getLogger(__name__)
+
+
+class ServoStatus(str, enum.Enum):
+    """What the servo did in one step."""
+
+    APPROACHING = "approaching"  # driving toward the goal pose
+    ALIGNING = "aligning"  # at the goal position (or translation unobservable): fixing the heading
+    CONVERGED = "converged"  # within position_tol_m and heading_tol_deg (estimated)
+    LOST = "lost"  # no usable geometry this step: the command is STOP
+
+
+@dataclass(frozen=True)
+class ServoOutput:
+    """One control step.
+
+    ``command``: the velocity to apply for the next period; ``position_error_s``: estimated distance
+    to the goal ``rho / lambda`` (0 when the images show no translation, NaN when lost);
+    ``position_error_m``: the same times ``nominal_scale_m`` (metres if the scale guess is right);
+    ``heading_error_rad``: estimated relative heading (NaN when lost); ``inliers``: matches that
+    agree with the planar motion; ``converged``: both errors below the configured tolerances.
+    """
+
+    command: Command
+    status: ServoStatus
+    pose: RelativePose
+    position_error_s: float
+    position_error_m: float
+    heading_error_rad: float
+    inliers: int
+    converged: bool
+    disturbance: DisturbanceEstimate
+
+
+class AppearanceServo:
+    """Stateful appearance servo for one vehicle kind; see the module docstring.
+
+    ``vehicle``: ``"unicycle"`` / ``"omni"`` or a :class:`~topomap.motion.VehicleKind`;
+    ``config``: a :class:`~topomap.config.ServoConfig` (``SERVO_PRESETS``).
+    """
+
+    def __init__(self, vehicle: str | VehicleKind = VehicleKind.UNICYCLE, config: ServoConfig | None = None):
+        self.vehicle = vehicle_kind(vehicle)
+        self.config = config or ServoConfig()
+        if not isinstance(self.config, ServoConfig):
+            raise ConfigError(f"servo config must be a ServoConfig, got {type(self.config).__name__}")
+        self.observer = DisturbanceObserver(self.config.observer, 1.0 / self.config.nominal_scale_m)
+        self.state = LawState()
+        self.steps = 0
+
+    # ------------------------------------------------------------------ lifecycle
+    def retarget(self) -> None:
+        """A new goal image: restart pose references, keep the disturbance estimates.
+
+        The unicycle keeps its along-track integral (a forward disturbance lives in the vehicle
+        frame); the omnidirectional integral is expressed in the old goal's frame and restarts.
+        """
+        self.observer.reset_target()
+        keep = self.state.integral if self.vehicle is VehicleKind.UNICYCLE else (0.0, 0.0)
+        self.state = LawState(integral=keep)
+
+    def reset(self) -> None:
+        """Forget everything (disturbances included)."""
+        self.observer = DisturbanceObserver(self.config.observer, 1.0 / self.config.nominal_scale_m)
+        self.state = LawState()
+        self.steps = 0
+
+    # ------------------------------------------------------------------ one step
+    def step(
+        self,
+        matched_cur_px: np.ndarray,
+        matched_goal_px: np.ndarray,
+        camera: CameraIntrinsics,
+        dt: float,
+        last_command: Command | None = None,
+        goal_camera: CameraIntrinsics | None = None,
+    ) -> ServoOutput:
+        """One control step.
+
+        ``matched_cur_px, matched_goal_px``: (N, 2) pixels of the same features in the current and
+        the goal image (row i matches row i); ``camera``: intrinsics of the current image
+        (``goal_camera`` of the goal image, default the same); ``dt``: time since the previous step
+        [s]; ``last_command``: the command applied since the previous step (None on the first).
+        """
+        if not (math.isfinite(dt) and dt > 0):
+            raise ConfigError(f"control period dt={dt} must be a positive number of seconds")
+        cfg = self.config
+        self.steps += 1
+        pose = relative_pose(matched_cur_px, matched_goal_px, camera, cfg.geometry, goal_camera=goal_camera)
+        if pose.status is PoseStatus.OK:
+            x_s, z_s = pose.x_s, pose.z_s
+        elif pose.status is PoseStatus.PURE_ROTATION:
+            x_s = z_s = 0.0  # the translation is below what the images resolve: at the goal position
+        else:
+            est = self.observer.update(dt, last_command, None, None)
+            log.debug("servo step %d: no geometry (%s, %d inliers)", self.steps, pose.status.value, pose.inliers)
+            return ServoOutput(STOP, ServoStatus.LOST, pose, math.nan, math.nan, math.nan, pose.inliers, False, est)
+        theta = pose.theta
+        est = self.observer.update(dt, last_command, theta, pose.position_s if pose.status is PoseStatus.OK else None)
+        if self.vehicle is VehicleKind.UNICYCLE:
+            cmd, self.state = unicycle_law(
+                x_s, z_s, theta, cfg, self.state, dt, d_omega_hat=est.d_omega, kappa_hat=est.kappa, mu_hat=est.mu_f
+            )
+        else:
+            cmd, self.state = omni_law(x_s, z_s, theta, cfg, self.state, dt, d_omega_hat=est.d_omega)
+        rho_s = math.hypot(x_s, z_s)
+        dist_m = rho_s * cfg.nominal_scale_m
+        converged = dist_m < cfg.position_tol_m and abs(theta) < math.radians(cfg.heading_tol_deg)
+        if converged:
+            status = ServoStatus.CONVERGED
+        elif pose.status is PoseStatus.PURE_ROTATION or self.state.aligning:
+            status = ServoStatus.ALIGNING
+        else:
+            status = ServoStatus.APPROACHING
+        return ServoOutput(cmd.for_vehicle(self.vehicle), status, pose, rho_s, dist_m, theta, pose.inliers, converged, est)
+
+    def with_config(self, **changes) -> AppearanceServo:
+        """A fresh servo for the same vehicle with some configuration fields changed."""
+        return AppearanceServo(self.vehicle, replace(self.config, **changes))
