@@ -17,6 +17,7 @@ from topomap.camera import load_camera
 from topomap.config import BUILD_PRESETS, build_preset
 from topomap.errors import DatasetError
 from topomap.features import detector
+from topomap.images import open_sequence
 from topomap.store import check_writable, export_graphml, export_json, load_map, save_map, update_map
 from topomap_cli.app import app, console, err_console, fail, print_json
 
@@ -39,6 +40,20 @@ def _progress_bar(quiet: bool):
         TimeElapsedColumn(), TextColumn("{task.fields[info]}"),
         console=err_console, transient=False, disable=quiet,
     )
+
+
+#: File types `topomap show` writes (chosen by the -o suffix).
+SHOW_FORMATS = ("png", "jpg", "jpeg", "svg", "pdf")
+
+
+def _check_output_file(path: Path, suffixes: tuple[str, ...] | None = None) -> None:
+    """One-line errors for an output file that cannot be written, before any work is done."""
+    if path.is_dir():
+        fail(f"{path} is a folder; give a file name inside it")
+    if not path.parent.exists():
+        fail(f"folder {path.parent} does not exist")
+    if suffixes is not None and path.suffix.lower().lstrip(".") not in suffixes:
+        fail(f"cannot write {path.name}: give a file name ending in one of {', '.join('.' + s for s in suffixes)}")
 
 
 @app.command()
@@ -66,8 +81,7 @@ def build(
         config = dataclasses.replace(config, features=dataclasses.replace(config.features, max_features=max_features))
     if resize is not None:
         config = dataclasses.replace(config, features=dataclasses.replace(config.features, resize_max_px=resize))
-    if not source.exists():
-        raise DatasetError(f"{source} does not exist; give an image folder, a video or a list file")
+    seq = open_sequence(source, every)  # bad sources fail here, before the progress bar appears
     check_writable(output, overwrite=force, append=append)
     cam = load_camera(camera) if camera is not None else None
     base = load_map(output, images=False) if append else None
@@ -86,7 +100,7 @@ def build(
             info = f"{p.nodes} nodes" if p.stage == "frames" else f"{p.edges} edges"
             bar.update(tasks[p.stage], total=p.total or None, completed=p.done, info=info)
 
-        m = build_map(source, None if append and features is None else config, cam, base=base, every=every,
+        m = build_map(seq, None if append and features is None else config, cam, base=base,
                       on_progress=on_progress)
     if append:
         update_map(m, output, first_new_node=first_node, first_new_frame=first_frame)
@@ -170,9 +184,11 @@ def show(
         missing = [n.source for n in m.nodes.values() if n.source not in positions]
         if missing:
             raise DatasetError(f"{poses} has no pose for keyframe(s) {', '.join(missing[:3])}; is it the right file?")
-    if not output.parent.exists():
-        fail(f"folder {output.parent} does not exist")
-    plot_map(m, output, positions)
+    _check_output_file(output, SHOW_FORMATS)
+    try:
+        plot_map(m, output, positions)
+    except OSError as e:
+        fail(f"cannot write {output}: {e.strerror or e}")
     err_console.print(f"wrote {output}")
 
 
@@ -186,13 +202,15 @@ def export(
     fmt = fmt.lower()
     if fmt not in ("json", "graphml"):
         fail(f"unknown format {fmt!r}; choose one of: graphml, json")
-    if not output.parent.exists():
-        fail(f"folder {output.parent} does not exist")
+    _check_output_file(output)
     m = load_map(map_path)
-    if fmt == "json":
-        output.write_text(json.dumps(export_json(m), indent=2) + "\n")
-    else:
-        export_graphml(m, output)
+    try:
+        if fmt == "json":
+            output.write_text(json.dumps(export_json(m), indent=2) + "\n")
+        else:
+            export_graphml(m, output)
+    except OSError as e:
+        fail(f"cannot write {output}: {e.strerror or e}")
     err_console.print(f"wrote {output}")
 
 

@@ -39,6 +39,9 @@ log = logging.getLogger(__name__)
 #: Width of the whole-image (patch-normalised thumbnail) descriptor [px]; height follows the aspect.
 DESCRIPTOR_WIDTH = 32
 DESCRIPTOR_PATCH = 8
+#: Frames with a side shorter than this are skipped: neither keypoints nor the whole-image
+#: descriptor (DESCRIPTOR_WIDTH px wide) carry information below it [px].
+MIN_IMAGE_PX = 32
 
 
 @dataclass(frozen=True)
@@ -149,8 +152,16 @@ def build_map(
             _report(on_progress, "frames", frame.index + 1, total, tmap)
             continue
         h, w = frame.image.shape
+        if min(w, h) < MIN_IMAGE_PX:
+            reason = f"{w}x{h} px is too small; images need at least {MIN_IMAGE_PX} px on each side"
+            skipped.append((frame.name, reason))
+            log.warning("skipped %s: %s", frame.name, reason)
+            tmap.frames.append(FrameRecord(fid, sequence_id, frame.index, frame.name, None, "too small"))
+            _report(on_progress, "frames", frame.index + 1, total, tmap)
+            continue
         if work_size is None:
-            work_size = working_size(w, h, config.features.resize_max_px, config.features.upscale_min_px)
+            work_size = working_size(w, h, config.features.resize_max_px, config.features.upscale_min_px,
+                                     config.features.max_upscale)
             cam_in = camera.fitted_to(w, h) if camera is not None else CameraIntrinsics.default(w, h)
             tmap.camera = cam_in.fitted_to(*work_size)
         if input_size is None:
@@ -186,8 +197,8 @@ def build_map(
 
     read = sum(1 for f in tmap.frames[first_frame:] if f.status == "ok")
     if read == 0:
-        reasons = "; ".join(f"{n}: {r}" for n, r in skipped[:3])
-        raise DatasetError(f"no readable image in {seq.source} ({reasons})")
+        reasons = "; ".join(f"{n}: {r}" for n, r in skipped[:3]) or "it holds no frames"
+        raise DatasetError(f"no usable image in {seq.source} ({reasons})")
 
     tmap.meta["descriptor"] = {"kind": "thumbnail", "size": list(descriptor_size(*work_size)), "patch": DESCRIPTOR_PATCH}
     new_ids = [n for n in sorted(tmap.nodes) if n >= first_node]

@@ -38,6 +38,7 @@ class FeatureConfig:
     resize_max_px: int | None = None  # shrink images whose longest side exceeds this [px]
     upscale_min_px: int = 480  # enlarge images whose longest side is below this [px]: tiny cameras
     # leave ORB's scale pyramid no room (corridor 160x120: exhaustive Recall@1 0.46 at 320 px, 0.70 at 480)
+    max_upscale: float = 3.0  # ... but never by more than this: beyond it keypoints sit on interpolation artefacts
     fast_threshold: int = 12  # ORB FAST threshold; lower finds more corners on weak texture
 
     def __post_init__(self) -> None:
@@ -116,23 +117,26 @@ class LocalizeConfig:
 
     descriptor: str = "auto"  # auto | fused | bow | thumbnail (topomap.localize.DESCRIPTORS)
     shortlist_k: int = 10  # nodes verified geometrically per query
-    inlier_weight: float = 0.2  # score added per verified inlier [z-units]
-    beta: float = 0.5  # sharpness of the softmax turning scores into probabilities [1/z-unit]
+    inlier_weight: float = 0.3  # score per verified inlier beyond chance (single frame) [z-units]
+    beta: float = 0.4  # sharpness of the softmax turning scores into probabilities [1/z-unit]
     min_confidence: float = 0.5  # probability on the answer (and neighbours) below which it is "unknown"
-    # temporal filter (sequence mode)
-    motion_hops: int = 2  # belief moves at most this many edges per frame
-    hop_sigma: float = 1.0  # Gaussian width of the motion model [edges]
-    jump_probability: float = 1e-3  # mass spread uniformly each frame: recovery after kidnapping
+    # temporal filter (sequence mode): states are (node, speed along the map's sequence chain)
+    max_speed_nodes: float = 1.5  # fastest motion along a chain [nodes/frame], both directions
+    speed_step_nodes: float = 0.25  # resolution of the speed states [nodes/frame]
+    speed_change_probability: float = 0.1  # per frame, to the next faster or slower speed state
+    graph_hop_probability: float = 0.05  # per frame, along any map edge (loop closures, other sequences)
+    jump_probability: float = 1e-3  # spread uniformly each frame: recovery after a kidnapping
 
     def __post_init__(self) -> None:
         if self.shortlist_k < 0:
             raise ConfigError("shortlist_k must be >= 0")
         if not 0.0 <= self.min_confidence <= 1.0:
             raise ConfigError(f"min_confidence={self.min_confidence} must lie in [0, 1]")
-        if not 0.0 <= self.jump_probability < 1.0:
-            raise ConfigError("jump_probability must lie in [0, 1)")
-        if self.beta <= 0 or self.hop_sigma <= 0 or self.motion_hops < 0:
-            raise ConfigError("beta and hop_sigma must be positive, motion_hops >= 0")
+        for name in ("speed_change_probability", "graph_hop_probability", "jump_probability"):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise ConfigError(f"{name} must lie in [0, 1)")
+        if self.beta <= 0 or self.speed_step_nodes <= 0 or self.max_speed_nodes < 0:
+            raise ConfigError("beta and speed_step_nodes must be positive, max_speed_nodes >= 0")
 
 
 BUILD_PRESETS: dict[str, BuildConfig] = {

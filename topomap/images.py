@@ -126,23 +126,53 @@ def read_image(path: str | Path) -> np.ndarray:
 
 
 def _looks_truncated(data: np.ndarray, path: Path) -> bool:
-    """JPEG decoders fill a cut file with grey and still succeed: check the end-of-image marker."""
+    """JPEG decoders fill a cut file with grey and still succeed: check the end-of-image marker.
+
+    A JPEG is whole when an end-of-image marker follows its first scan: data after it (phone
+    "motion photo" videos, maker trailers) is allowed, and an EXIF thumbnail's own marker, which
+    lies before the scan, does not count.
+    """
     if data[:2].tobytes() == b"\xff\xd8":  # JPEG
-        return b"\xff\xd9" not in data[-1024:].tobytes()
+        buf = data.tobytes()
+        sos = _jpeg_scan_start(buf)
+        if sos is None:  # header not walkable: only look at the tail
+            return b"\xff\xd9" not in buf[-1024:]
+        return buf.find(b"\xff\xd9", sos) < 0  # entropy-coded data never holds FF D9
     if data[:8].tobytes() == b"\x89PNG\r\n\x1a\n":
         return b"IEND" not in data[-32:].tobytes()
     return False
 
 
-def working_size(width: int, height: int, resize_max_px: int | None, upscale_min_px: int) -> tuple[int, int]:
+def _jpeg_scan_start(buf: bytes) -> int | None:
+    """Offset of a JPEG's first start-of-scan marker, found by walking the header segments (their
+    payload may hold marker bytes of its own); ``None`` if the header cannot be walked."""
+    i = 2
+    while i + 4 <= len(buf):
+        if buf[i] != 0xFF:
+            return None
+        marker = buf[i + 1]
+        if marker == 0xFF:  # fill byte before a marker
+            i += 1
+        elif marker == 0xDA:
+            return i
+        elif marker == 0x01 or 0xD0 <= marker <= 0xD9:  # markers without a length field
+            i += 2
+        else:
+            i += 2 + int.from_bytes(buf[i + 2 : i + 4], "big")
+    return None
+
+
+def working_size(width: int, height: int, resize_max_px: int | None, upscale_min_px: int,
+                 max_upscale: float = 3.0) -> tuple[int, int]:
     """Size ``(w, h)`` images are processed at: longest side shrunk to ``resize_max_px`` if larger,
-    or enlarged to ``upscale_min_px`` if smaller (tiny cameras leave local features no room)."""
+    or enlarged towards ``upscale_min_px`` (by at most ``max_upscale``) if smaller: tiny cameras leave
+    local features no room, but a too large enlargement only invents texture."""
     longest = max(width, height)
     scale = 1.0
     if resize_max_px and longest > resize_max_px:
         scale = resize_max_px / longest
     elif upscale_min_px and longest < upscale_min_px:
-        scale = upscale_min_px / longest
+        scale = min(upscale_min_px / longest, max_upscale)
     if scale == 1.0:
         return width, height
     return max(1, int(round(width * scale))), max(1, int(round(height * scale)))

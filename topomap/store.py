@@ -93,7 +93,7 @@ CREATE TABLE frame (
     seq_index   INTEGER NOT NULL,  -- position within its sequence
     source      TEXT NOT NULL,     -- file name (frame_000123 for videos)
     node_id     INTEGER REFERENCES node(id),  -- node representing this frame; NULL if skipped
-    status      TEXT NOT NULL      -- ok | unreadable: ... | featureless
+    status      TEXT NOT NULL      -- ok | unreadable | too small (then node_id is NULL)
 );
 CREATE INDEX frame_node ON frame(node_id);
 CREATE TABLE array (               -- named arrays: the place-recognition index (vocabulary, BoW)
@@ -329,7 +329,10 @@ def load_map(path: str | Path, *, images: bool = False) -> TopoMap:
 
 
 def _read(con: sqlite3.Connection, path: Path, images: bool) -> TopoMap:
-    meta = {k: json.loads(v) for k, v in con.execute("SELECT key, value FROM meta")}
+    try:
+        meta = {k: json.loads(v) for k, v in con.execute("SELECT key, value FROM meta")}
+    except (TypeError, ValueError):  # json.JSONDecodeError is a ValueError
+        raise MapFormatError(f"map {path} is damaged: its header is not valid JSON; rebuild it or restore a copy") from None
     if meta.get("format") != FORMAT_NAME:
         raise MapFormatError(f"{path} is not a topomap map (format {meta.get('format')!r})")
     try:

@@ -1,0 +1,135 @@
+"""Benchmark: build throughput — frames/s of ``build_map`` against a plain decode + extract loop.
+
+The baseline is the least any build must do per frame: ``read_image`` + ``to_working_resolution``
++ ``extract`` on the same frames with the same feature settings. ``build_map`` adds keyframe
+matching and RANSAC, the vocabulary and index, and loop closure. Printed per dataset: frames,
+nodes, edges, the time of each, frames/s of each and the ratio build/baseline (1.0 = the build
+costs no more than decoding and extracting), plus where the build's time goes (frames stage =
+decode + extract + keyframing, index = vocabulary k-means + bag of words, loops = shortlist +
+verification) and the time to save the map file.
+
+Run: ``python benchmarks/bench_build.py [--dataset corridor|castle] [--features orb|sift|akaze]
+[--repeat N]`` (default: both datasets, orb, best of 1; about 30 s on 2 cores). Datasets are read
+from ``$TOPOMAP_SHARED/datasets`` or ``../shared/datasets`` beside the repository.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from topomap.build import BuildProgress, build_map
+from topomap.camera import load_camera
+from topomap.config import BuildConfig
+from topomap.features import detector, extract
+from topomap.images import open_sequence, read_image, to_working_resolution, working_size
+from topomap.store import save_map
+
+SHARED = Path(os.environ.get("TOPOMAP_SHARED", Path(__file__).resolve().parents[1].parent / "shared"))
+
+#: name -> (image source, camera file or None), relative to the datasets folder
+DATASETS = {
+    "corridor": ("corridor/ref", None),
+    "castle": ("castle-p30/images", "castle-p30/K.txt"),
+}
+
+
+def baseline(paths: list[Path], config: BuildConfig) -> float:
+    """Seconds to decode, resize and extract features of every frame (no matching, no map)."""
+    t0 = time.perf_counter()
+    size = None
+    for p in paths:
+        img = read_image(p)
+        if size is None:
+            size = working_size(img.shape[1], img.shape[0], config.features.resize_max_px, config.features.upscale_min_px,
+                                config.features.max_upscale)
+        extract(to_working_resolution(img, size), config.features)
+    return time.perf_counter() - t0
+
+
+def timed_build(source: Path, config: BuildConfig, camera) -> tuple[float, dict[str, float], object]:
+    """Seconds of ``build_map``, the seconds spent in each stage, and the map."""
+    marks: dict[str, float] = {}
+
+    def on_progress(p: BuildProgress) -> None:
+        now = time.perf_counter()
+        marks.setdefault(f"{p.stage}_start", now)
+        marks[f"{p.stage}_end"] = now
+
+    t0 = time.perf_counter()
+    m = build_map(source, config, camera, on_progress=on_progress)
+    t1 = time.perf_counter()
+    # each stage runs from the end of the previous one to its own last report
+    stages, prev = {}, t0
+    for stage in ("frames", "index", "loops"):
+        if f"{stage}_end" in marks:
+            stages[stage] = marks[f"{stage}_end"] - prev
+            prev = marks[f"{stage}_end"]
+    return t1 - t0, stages, m
+
+
+def run(name: str, kind: str, repeat: int) -> dict:
+    rel_source, rel_camera = DATASETS[name]
+    source = SHARED / "datasets" / rel_source
+    if not source.exists():
+        raise SystemExit(f"dataset {source} not found; set TOPOMAP_SHARED")
+    camera = load_camera(SHARED / "datasets" / rel_camera) if rel_camera else None
+    base_cfg = BuildConfig()
+    config = dataclasses.replace(base_cfg, features=dataclasses.replace(base_cfg.features, kind=kind))
+    paths = [Path(f.path) for f in open_sequence(source)]
+    extract(read_image(paths[0]), config.features)  # warm-up: OpenCV initialisation is not the subject
+    t_base = min(baseline(paths, config) for _ in range(repeat))
+    best = None
+    for _ in range(repeat):
+        t, stages, m = timed_build(source, config, camera)
+        if best is None or t < best[0]:
+            best = (t, stages, m)
+    t_build, stages, m = best
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        save_map(m, Path(tmp) / "m.topomap")
+        t_save = time.perf_counter() - t0
+    n = len(paths)
+    return {
+        "dataset": name, "frames": n, "nodes": len(m.nodes), "edges": len(m.edges),
+        "loops": m.edges_by_kind()["loop"], "base_s": t_base, "build_s": t_build,
+        "base_fps": n / t_base, "build_fps": n / t_build, "ratio": t_base / t_build,
+        "stages": stages, "save_s": t_save, "size": m.working_size,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--dataset", choices=sorted(DATASETS), action="append",
+                    help="dataset to run (repeatable; default: corridor and castle)")
+    ap.add_argument("--features", default="orb", help="orb | sift | akaze (default orb)")
+    ap.add_argument("--repeat", type=int, default=1, help="best of N runs (default 1)")
+    args = ap.parse_args(argv)
+    detector(args.features)
+    names = args.dataset or ["corridor", "castle"]
+    rows = [run(n, args.features, max(1, args.repeat)) for n in names]
+
+    print(f"Build throughput ({args.features}, default preset): build_map vs decode + extract baseline")
+    print(f"{'dataset':<10}{'size':>10}{'frames':>8}{'nodes':>7}{'edges':>7}{'loops':>7}"
+          f"{'base [s]':>10}{'build [s]':>11}{'base f/s':>10}{'build f/s':>11}{'build/base':>12}")
+    for r in rows:
+        size = f"{r['size'][0]}x{r['size'][1]}"
+        print(f"{r['dataset']:<10}{size:>10}{r['frames']:>8}{r['nodes']:>7}{r['edges']:>7}{r['loops']:>7}"
+              f"{r['base_s']:>10.2f}{r['build_s']:>11.2f}{r['base_fps']:>10.1f}{r['build_fps']:>11.1f}{r['ratio']:>12.2f}")
+    print()
+    print("Where the build's time goes [s] (frames = decode + extract + keyframing; index = vocabulary + BoW;")
+    print("loops = shortlist + geometric verification); save = writing the map file (not in build_map)")
+    print(f"{'dataset':<10}{'frames':>9}{'index':>9}{'loops':>9}{'save':>9}")
+    for r in rows:
+        s = r["stages"]
+        print(f"{r['dataset']:<10}{s.get('frames', 0):>9.2f}{s.get('index', 0):>9.2f}{s.get('loops', 0):>9.2f}{r['save_s']:>9.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

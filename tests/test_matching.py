@@ -1,0 +1,95 @@
+"""topomap.matching: ratio/mutual matching with the registry's norm, epipolar verification."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from map_synth import scene, window
+
+from topomap.config import FeatureConfig, MatchConfig
+from topomap.errors import ConfigError
+from topomap.features import Features, extract
+from topomap.matching import Matches, match_descriptors, verify
+
+
+@pytest.fixture(scope="module")
+def texture():
+    return scene(seed=1)
+
+
+@pytest.fixture(scope="module")
+def pair(texture):
+    """An image and a warped view of the same scene (shifted 40 px, zoomed 5 %, slightly rotated)."""
+    a = window(texture, 300.0)
+    h, w = a.shape
+    R = cv2.getRotationMatrix2D((w / 2, h / 2), 3.0, 1.05)
+    R[0, 2] += 40.0
+    b = cv2.warpAffine(a, R, (w, h), borderMode=cv2.BORDER_REFLECT)
+    return a, b, R
+
+
+@pytest.mark.parametrize("kind", ["orb", "sift", "akaze"])
+def test_warped_image_verifies_with_many_inliers(pair, kind):
+    a, b, R = pair
+    cfg = FeatureConfig(kind=kind, max_features=800)
+    fa, fb = extract(a, cfg), extract(b, cfg)
+    v = verify(fa, fb)
+    assert v.inliers >= 150, v.inliers
+    assert v.inlier_ratio > 0.7
+    assert 0.2 < v.similarity <= 1.0
+    assert v.F is not None and v.F.shape == (3, 3)
+    # inliers obey the known warp (within a few pixels)
+    m = v.inlier_matches
+    pa, pb = fa.keypoints[m.ia], fb.keypoints[m.ib]
+    pred = pa @ R[:, :2].T + R[:, 2]
+    assert np.median(np.linalg.norm(pred - pb, axis=1)) < 2.0
+    assert 25.0 < v.flow_px < 80.0  # shift of 40 px plus rotation / zoom about the centre
+
+
+def test_unrelated_images_do_not_verify(texture):
+    a = window(texture, 0.0)
+    b = window(scene(seed=7), 0.0)
+    fa, fb = extract(a), extract(b)
+    v = verify(fa, fb)
+    assert v.inliers == 0 and v.similarity == 0.0 and v.F is None
+    far = extract(window(texture, 1800.0))  # same texture, no overlap
+    assert verify(fa, far).inliers == 0
+
+
+def test_matches_are_one_to_one_and_mutual(pair):
+    a, b, _ = pair
+    fa, fb = extract(a), extract(b)
+    m = match_descriptors(fa, fb)
+    assert len(m) > 100
+    assert len(np.unique(m.ib)) == len(m) and len(np.unique(m.ia)) == len(m)
+    assert m.ia.dtype == np.int32 and m.distance.dtype == np.float32
+    loose = match_descriptors(fa, fb, MatchConfig(mutual=False, ratio=1.0))
+    assert len(loose) >= len(m)
+    # Hamming distances for ORB: integers in [0, 256]
+    assert np.all(m.distance == np.round(m.distance)) and m.distance.max() <= 256
+
+
+def test_verification_is_deterministic(pair):
+    a, b, _ = pair
+    fa, fb = extract(a), extract(b)
+    v1, v2 = verify(fa, fb), verify(fa, fb)
+    np.testing.assert_array_equal(v1.inlier_mask, v2.inlier_mask)
+    assert v1.similarity == v2.similarity
+
+
+def test_too_few_features_or_matches(pair):
+    a, _, _ = pair
+    fa = extract(a)
+    empty = Features.empty("orb", (480, 360))
+    assert len(match_descriptors(fa, empty)) == 0
+    v = verify(fa, empty)
+    assert v.inliers == 0 and v.F is None
+    few = Matches(np.arange(5, dtype=np.int32), np.arange(5, dtype=np.int32), np.zeros(5, np.float32))
+    assert verify(fa, fa, matches=few).inliers == 0  # below the 8-point minimum
+
+
+def test_mixed_kinds_are_refused(pair):
+    a, _, _ = pair
+    with pytest.raises(ConfigError, match="cannot match orb features against sift"):
+        match_descriptors(extract(a), extract(a, FeatureConfig(kind="sift", max_features=100)))
