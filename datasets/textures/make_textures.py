@@ -2,7 +2,7 @@
 
 Run from the repository root: ``python datasets/textures/make_textures.py [SHARED_DATASETS_DIR]``.
 Each crop is contrast-stretched (1st-99th percentile per channel, the originals were taken at dusk)
-and resized to 240 px height; the crop boxes are listed in PROVENANCE.md.
+and resized to 288 px height; the crop boxes are listed in PROVENANCE.md.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-HEIGHT_PX = 240
+HEIGHT_PX = 288
 
 #: name -> (dataset-relative image, x, y, w, h) on the original image [px]
 CROPS = {
@@ -26,9 +26,10 @@ CROPS = {
     "castle_windows_arch": ("castle-p30/images/0022.jpg", 0, 100, 300, 340),
     "castle_door_arch": ("castle-p30/images/0027.jpg", 500, 120, 268, 330),
     "castle_arcade": ("castle-p30/images/0027.jpg", 0, 150, 240, 290),
-    "corridor_lockers": ("corridor/ref/0000040.jpg", 30, 25, 100, 80),
-    "corridor_doors": ("corridor/ref/0000008.jpg", 30, 25, 100, 80),
-    "corridor_office": ("corridor/ref/0000088.jpg", 30, 25, 100, 80),
+    "castle_ornate_windows": ("castle-p30/images/0005.jpg", 0, 70, 260, 330),
+    "castle_tree_arch": ("castle-p30/images/0005.jpg", 500, 110, 268, 290),
+    "castle_gate": ("castle-p30/images/0018.jpg", 400, 180, 170, 230),
+    "castle_wing": ("castle-p30/images/0018.jpg", 0, 100, 260, 320),
 }
 
 
@@ -47,7 +48,7 @@ def main(shared: Path) -> None:
         crop = stretch(img[y : y + h, x : x + w])
         width = round(w * HEIGHT_PX / h)
         crop = cv2.resize(crop, (width, HEIGHT_PX), interpolation=cv2.INTER_AREA if h > HEIGHT_PX else cv2.INTER_CUBIC)
-        cv2.imwrite(str(HERE / f"{name}.jpg"), crop, [cv2.IMWRITE_JPEG_QUALITY, 88])
+        cv2.imwrite(str(HERE / f"{name}.jpg"), crop, [cv2.IMWRITE_JPEG_QUALITY, 85])
         print(f"{name}.jpg  {width}x{HEIGHT_PX}")
 
 

@@ -3,13 +3,15 @@
 A texture is named by a string key that a world file stores:
 
 * ``photo:NAME`` — one of the photographs shipped in ``topomap_datasets/textures`` (crops of the
-  real castle-P30 and corridor images, see PROVENANCE.md there);
+  real castle-P30 images, see PROVENANCE.md there);
 * ``user:FILE`` — a photograph in the folder the user gave with ``--textures DIR``;
+* either of them with ``:flip`` appended — the photograph mirrored left-right (binary descriptors
+  such as ORB are not mirror invariant, so it adds a distinct texture that still looks alike);
 * ``proc:KIND:SEED`` — drawn procedurally from a seed (kinds in :data:`PROCEDURAL`).
 
-Photographs make local features plentiful; procedural textures repeat across a world so that places
-can look alike, as they do in real buildings. Every texture comes back as an ``(H, W, 3) uint8`` RGB
-array; the same key always gives the same pixels.
+Photographs make local features plentiful; overlapping crops of the same facades and procedural
+patterns of one style make places look alike, as they do in real buildings. Every texture comes back
+as an ``(H, W, 3) uint8`` RGB array; the same key always gives the same pixels.
 """
 
 from __future__ import annotations
@@ -94,6 +96,11 @@ def _read_photo(path: str) -> np.ndarray | None:
 def texture_image(key: str, texture_dir: str | Path | None = None) -> np.ndarray:
     """The ``(H, W, 3) uint8`` RGB pixels of texture ``key`` (read-only array)."""
     kind, _, rest = str(key).partition(":")
+    if kind in ("photo", "user") and rest.endswith(":flip"):
+        img = texture_image(f"{kind}:{rest[: -len(':flip')]}", texture_dir)[:, ::-1]
+        img = np.ascontiguousarray(img)
+        img.setflags(write=False)
+        return img
     if kind == "photo":
         path = builtin_texture_dir() / f"{rest}.jpg"
         img = _read_photo(str(path)) if path.is_file() else None
@@ -117,7 +124,7 @@ def texture_image(key: str, texture_dir: str | Path | None = None) -> np.ndarray
         except ValueError:
             raise DatasetError(f"texture key {key!r} needs an integer seed, like 'proc:{name}:3'") from None
         return _procedural(name, seed_i)
-    raise DatasetError(f"texture key {key!r} is not of the form photo:NAME, user:FILE or proc:KIND:SEED")
+    raise DatasetError(f"texture key {key!r} is not of the form photo:NAME[:flip], user:FILE[:flip] or proc:KIND:SEED")
 
 
 def texture_width_m(key: str, texture_dir: str | Path | None, height_m: float) -> float:

@@ -389,8 +389,8 @@ def generate_world(
     def idx(v: float) -> int:
         return int(round(v / GRID_M))
 
-    def carve(x0, z0, x1, z1, grid=free):
-        grid[idx(x0) : idx(x1), idx(z0) : idx(z1)] = True
+    def carve(x0, z0, x1, z1):
+        free[idx(x0) : idx(x1), idx(z0) : idx(z1)] = True
 
     def occupied(x0, z0, x1, z1) -> bool:
         return bool(free[max(0, idx(x0)) : idx(x1), max(0, idx(z0)) : idx(z1)].any())
@@ -405,7 +405,7 @@ def generate_world(
         carve(x - h, z - h, x + h, z + h)
 
     # Rooms beside corridors, each joined to its corridor by a door.
-    room_list = []  # (rect, door_centre_on_centreline, door_inside_point, edge)
+    room_list = []  # (rect, door on the corridor centre line, a point 1 m inside the door, corridor)
     candidates = [(e, s) for e in edges for s in (-1, 1)]
     order = rng.permutation(len(candidates))
     for k in order:
@@ -556,20 +556,28 @@ def _rects_from_grid(free: np.ndarray) -> list[Rect]:
     return rects
 
 
+#: Procedural wall patterns and their weights.
+_WALL_KINDS = ("poster", "poster", "poster", "board", "board", "bricks", "panels", "panels")
+PHOTO_SHARE = 0.5  # chance that a wall panel shows a photograph, while unused ones remain
+
+
 def _texture_pool(rng: np.random.Generator, texture_dir: str | Path | None) -> list[str]:
-    """Texture keys a world's walls draw from: every photograph plus a few procedural patterns."""
+    """Photograph keys the walls draw from (each photograph plain and mirrored), in random order."""
     photos = tx.photo_keys(texture_dir)
-    procs = [f"proc:{kind}:{int(rng.integers(0, 1000))}" for kind in ("poster", "poster", "poster", "board", "board", "bricks", "panels", "panels")]
-    return photos + procs
+    pool = photos + [f"{k}:flip" for k in photos]
+    return [pool[i] for i in rng.permutation(len(pool))]
 
 
 def _assign_textures(rng: np.random.Generator, panels, pool: list[str]) -> list[Wall]:
+    """One texture per panel: about half photographs, each used once (identical walls in two places
+    would make false loop closures certain), the others procedural patterns with their own seeds."""
     walls = []
-    prev = None
+    k = 0
     for x0, z0, x1, z1 in panels:
-        key = pool[int(rng.integers(0, len(pool)))]
-        if key == prev:  # neighbouring panels differ
-            key = pool[(pool.index(key) + 1) % len(pool)]
-        walls.append(Wall(float(x0), float(z0), float(x1), float(z1), key))
-        prev = key
+        if rng.random() < PHOTO_SHARE and k < len(pool):
+            key = pool[k]
+            k += 1
+        else:
+            key = f"proc:{_WALL_KINDS[int(rng.integers(0, len(_WALL_KINDS)))]}:{int(rng.integers(0, 1_000_000))}"
+        walls.append(Wall(_r(x0), _r(z0), _r(x1), _r(z1), key))  # rounded as in the JSON file
     return walls
