@@ -8,7 +8,9 @@ from __future__ import annotations
 
 # Command modules (imported for their registrations).
 from topomap_cli import build  # noqa: F401
+from topomap_cli import localize  # noqa: F401
 from topomap_cli import observability  # noqa: F401
+from topomap_cli import sim  # noqa: F401
 from topomap_cli.app import app
 
 __all__ = ["app", "main"]
