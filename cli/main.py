@@ -10,6 +10,7 @@ from __future__ import annotations
 from topomap_cli import build  # noqa: F401
 from topomap_cli import localize  # noqa: F401
 from topomap_cli import observability  # noqa: F401
+from topomap_cli import plan  # noqa: F401
 from topomap_cli import sim  # noqa: F401
 from topomap_cli.app import app
 

@@ -328,3 +328,112 @@ def servo_preset(name: str) -> ServoConfig:
 
 
 __all__ += ["RelativePoseConfig", "ObserverConfig", "ServoConfig", "SERVO_PRESETS", "servo_preset"]
+
+
+# ---------------------------------------------------------------------- route planning
+# (THESIS.md section 4: edge weight = how hard the servo along it is; used by topomap.plan)
+@dataclass(frozen=True)
+class PlanConfig:
+    """Edge costs and re-planning (see :mod:`topomap.plan`). Costs are in *hops*: one easy edge ~ 1.
+
+    A verified edge costs ``hop_cost + inlier_weight / (q + inlier_softening)
+    + flow_weight * flow_px / diagonal_px`` with ``q = (inliers - n0) / n0`` the margin above the
+    matcher's chance level ``n0 = match.min_inliers``; an edge below ``n0`` costs ``unverified_cost``.
+    """
+
+    hop_cost: float = 1.0  # every servo subtask (converge on an intermediate node) [hops]
+    inlier_weight: float = 1.0  # [hops] at a margin q = 1 above chance (inliers = 2 n0), ~inlier_weight/2
+    inlier_softening: float = 0.1  # q0: caps the inlier term at inlier_weight / q0 at the chance level
+    flow_weight: float = 2.0  # [hops per image diagonal] of median image motion along the edge
+    # An edge with fewer inliers than the chance level (frames that did not verify) is still
+    # traversable but is taken only when every verified detour costs more than this [hops].
+    unverified_cost: float = 1000.0
+    failure_factor: float = 10.0  # Planner.penalize multiplies a failed edge's cost by this
+    # A non-sequential edge joining two nodes of one sequence at most this many sequential steps
+    # apart costs at least as much as the taught chain between them: consecutive keyframes were
+    # chosen so that servoing between them stays feasible, a shortcut across them is a longer
+    # baseline. (Real loop closures join nodes further apart and keep their cost.) 0 disables it.
+    chain_shortcut_max_skip: int = 8
+    # Servoing along a sequential edge against the taught direction means backing towards images
+    # that face away from the motion, and at corners turning through views the keyframes barely
+    # share: it costs this many times more (still possible where nothing else leads, e.g. dead ends).
+    reverse_factor: float = 3.0
+
+    def __post_init__(self) -> None:
+        for name in ("hop_cost", "inlier_softening"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"plan {name}={getattr(self, name)} must be positive")
+        for name in ("inlier_weight", "flow_weight"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"plan {name}={getattr(self, name)} must not be negative")
+        if not self.failure_factor >= 1:
+            raise ConfigError(f"plan failure_factor={self.failure_factor} must be at least 1")
+        if self.chain_shortcut_max_skip < 0:
+            raise ConfigError("plan chain_shortcut_max_skip must not be negative")
+        if not self.reverse_factor >= 1:
+            raise ConfigError(f"plan reverse_factor={self.reverse_factor} must be at least 1")
+        # the dearest verified edge (at the chance level, motion of a whole diagonal)
+        dearest = self.hop_cost + self.inlier_weight / self.inlier_softening + self.flow_weight
+        if not self.unverified_cost > dearest:
+            raise ConfigError(
+                f"plan unverified_cost={self.unverified_cost} must exceed the dearest verified edge ({dearest:g}); raise it"
+            )
+
+
+PLAN_PRESETS: dict[str, PlanConfig] = {
+    # Weigh inliers and image motion: prefer a few more easy servos to one hard one.
+    "default": PlanConfig(),
+    # Fewest servo subtasks: every verified edge costs one hop; unverified edges still come last.
+    "hops": PlanConfig(inlier_weight=0.0, flow_weight=0.0, chain_shortcut_max_skip=0, reverse_factor=1.0),
+}
+
+
+def plan_preset(name: str) -> PlanConfig:
+    """The named :class:`PlanConfig`; unknown names list the valid ones."""
+    try:
+        return PLAN_PRESETS[name]
+    except KeyError:
+        raise unknown_choice("plan preset", name, PLAN_PRESETS) from None
+
+
+__all__ += ["PlanConfig", "PLAN_PRESETS", "plan_preset"]
+
+
+@dataclass(frozen=True)
+class NavigateConfig:
+    """The navigation loop (see :mod:`topomap.navigate`): localize -> plan -> servo -> switch."""
+
+    control_period_s: float = 0.1  # one image and one command per period [s]
+    # An intermediate subgoal is reached when the servo estimates it closer than this [m] ...
+    switch_distance_m: float = 0.35
+    # Distance and "driven past" count only with the heading within this of the subgoal's: at the
+    # teach run's corners consecutive nodes differ by a turn, and the next one is out of view until
+    # the robot has turned [deg].
+    switch_heading_deg: float = 15.0
+    # ... or when the next node of the route verifies with more inliers than the current one
+    # (it is the better target now), or the robot has driven past the subgoal.
+    switch_min_inliers: int = 30  # the next node must verify with at least this many inliers
+    settle_steps: int = 5  # the final goal counts as reached after this many converged steps in a row,
+    # or when the servo stops making progress close to it: a docked unicycle cannot remove a small
+    # lateral offset by turning in place. Then: heading within the servo's tolerance, the estimated
+    # distance changed less than settle_progress_m over settle_window_s, and is below settle_max_m.
+    settle_window_s: float = 3.0
+    settle_progress_m: float = 0.01
+    settle_max_m: float = 0.15
+    lost_after_steps: int = 15  # steps without usable geometry before re-localizing
+    subgoal_timeout_s: float = 40.0  # a subgoal not reached in this time marks its edge as failed
+    max_replans: int = 8
+    scan_turn_rps: float = 0.5  # turning rate while scanning for a place to localize [rad/s]
+    scan_every_s: float = 0.6  # localize attempts while scanning [s]
+    time_budget_s_per_hop: float = 30.0  # the whole navigation may last 60 s + this per route hop [s]
+
+    def __post_init__(self) -> None:
+        for name in ("control_period_s", "switch_distance_m", "switch_heading_deg", "subgoal_timeout_s", "scan_turn_rps", "scan_every_s",
+                     "time_budget_s_per_hop"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"navigate {name} must be positive")
+        if self.settle_steps < 1 or self.lost_after_steps < 1 or self.max_replans < 0:
+            raise ConfigError("settle_steps and lost_after_steps must be >= 1, max_replans >= 0")
+
+
+__all__ += ["NavigateConfig"]

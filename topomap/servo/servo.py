@@ -42,7 +42,7 @@ class ServoStatus(str, enum.Enum):
     APPROACHING = "approaching"  # driving toward the goal pose
     ALIGNING = "aligning"  # at the goal position (or translation unobservable): fixing the heading
     CONVERGED = "converged"  # within position_tol_m and heading_tol_deg (estimated)
-    LOST = "lost"  # no usable geometry this step: the command is STOP
+    LOST = "lost"  # no usable geometry this step: the command only cancels the estimated disturbance
 
 
 @dataclass(frozen=True)
@@ -129,7 +129,8 @@ class AppearanceServo:
         else:
             est = self.observer.update(dt, last_command, None, None)
             log.debug("servo step %d: no geometry (%s, %d inliers)", self.steps, pose.status.value, pose.inliers)
-            return ServoOutput(STOP, ServoStatus.LOST, pose, math.nan, math.nan, math.nan, pose.inliers, False, est)
+            return ServoOutput(self.hold_command(est), ServoStatus.LOST, pose, math.nan, math.nan, math.nan,
+                               pose.inliers, False, est)
         theta = pose.theta
         est = self.observer.update(dt, last_command, theta, pose.position_s if pose.status is PoseStatus.OK else None)
         if self.vehicle is VehicleKind.UNICYCLE:
@@ -148,6 +149,26 @@ class AppearanceServo:
         else:
             status = ServoStatus.APPROACHING
         return ServoOutput(cmd.for_vehicle(self.vehicle), status, pose, rho_s, dist_m, theta, pose.inliers, converged, est)
+
+    def hold_command(self, est: DisturbanceEstimate) -> Command:
+        """Stand still while blind: cancel the disturbances estimated so far (STOP before the
+        observer has any). Under a turning bias a plain STOP would spin the camera away from the
+        view it needs to recover."""
+        if not self.config.compensate or not est.ready:
+            return STOP
+        limit_v, limit_w = 0.3 * self.config.max_speed_mps, self.config.max_turn_rps
+        v_f = v_h = 0.0
+        if math.isfinite(est.kappa) and est.kappa > 1e-6:  # drift mu [lambda/s] over kappa [1/m] -> m/s
+            v_f, v_h = -est.mu_f / est.kappa, -est.mu_h / est.kappa
+        cmd = Command(v_f, v_h, -est.d_omega).clipped(limit_v, limit_w)
+        return cmd.for_vehicle(self.vehicle)
+
+    def reconfigure(self, **changes) -> None:
+        """Change configuration fields in place, keeping the disturbance estimates and the law state
+        (e.g. a wide docking radius for a route's waypoints, the precise one for its goal)."""
+        if "observer" in changes or "nominal_scale_m" in changes:
+            raise ConfigError("the observer settings and the nominal scale cannot change while running; make a new servo")
+        self.config = replace(self.config, **changes)
 
     def with_config(self, **changes) -> AppearanceServo:
         """A fresh servo for the same vehicle with some configuration fields changed."""

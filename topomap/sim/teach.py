@@ -5,6 +5,8 @@ navigation code). The run writes into ``out_dir``:
 
 * ``0000.png, 0001.png, ...`` — an image every ``spacing_m`` of travel or ``turn_spacing_deg`` of turn;
 * ``poses.csv`` — ``image,x,z,theta`` per image (ground truth; metres, radians);
+* ``commands.csv`` — every command the driver sent (``t_s, dt_s, v_f, v_h, omega, after_image``),
+  for the blind-replay baseline of the navigation benchmark;
 * ``camera.yaml`` — the intrinsics, in the format ``topomap build --camera`` reads;
 * ``world.json`` — the world, so the run can be replayed; ``teach.json`` — the run's settings.
 """
@@ -211,6 +213,8 @@ def teach(
     follower = PurePursuit(path, cfg.lookahead_m, cfg.speed_mps, cfg.max_turn_rps, omni=vehicle_kind(vehicle) is VehicleKind.OMNI)
     start = route_start(world, route)
     rows: list[tuple[str, float, float, float]] = []
+    # (start time [s], dt [s], v_f, v_h, omega, index of the last image taken): the blind-replay baseline
+    commands: list[tuple[float, float, float, float, float, int]] = []
     with Simulator(world, vehicle=vehicle, disturbance=disturbance, camera=camera, seed=seed,
                    start_pose=start, camera_height_m=camera_height_m) as sim:
         gt = sim.ground_truth
@@ -237,6 +241,7 @@ def teach(
             if cmd is None:
                 break
             report = sim.robot.apply(cmd, cfg.dt_s)
+            commands.append((report.time_s - report.dt_s, report.dt_s, cmd.v_f, cmd.v_h, cmd.omega, len(rows) - 1))
             new = np.array(gt.pose())
             step = float(np.linalg.norm(new[:2] - pose[:2]))
             driven += step
@@ -264,6 +269,11 @@ def teach(
         w.writerow(["image", "x", "z", "theta"])
         for name, x, z, th in rows:
             w.writerow([name, f"{x:.6f}", f"{z:.6f}", f"{th:.6f}"])
+    with (out / "commands.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["t_s", "dt_s", "v_f", "v_h", "omega", "after_image"])
+        for t, dt, vf, vh, om, k in commands:
+            w.writerow([f"{t:.4f}", f"{dt:.4f}", f"{vf:.6f}", f"{vh:.6f}", f"{om:.6f}", k])
     camera_path = cam.save(out / "camera.yaml")
     world_path = world.save(out / "world.json")
     meta = {

@@ -1,0 +1,359 @@
+"""The navigation loop: localize -> plan -> servo toward each subgoal -> switch -> re-localize when lost.
+
+This is the only control loop of topomap (THESIS.md section 4). It sees what a robot sees: its
+camera's images and intrinsics, the map, and the commands it sends. It never reads a pose — the
+robot it drives is anything with ``camera``, ``render()`` and ``apply(command, dt)``
+(:class:`RobotLike`; the simulator's ``sim.robot`` or a real robot driver).
+
+Route following. The route is a chain of node subgoals (:class:`~topomap.plan.Planner`). Each control
+period the current image is matched to the current subgoal's keyframe and the appearance servo turns
+the matches into a command (:class:`~topomap.servo.servo.AppearanceServo`). An intermediate subgoal
+counts as reached — and the next node becomes the target — when
+
+* the servo's estimated distance to it falls below ``switch_distance_m``, or the robot has driven
+  past it (its estimated position crossed the subgoal camera's plane, from the side it came) — with the heading
+  within ``switch_heading_deg`` of the subgoal's (at the teach run's corners the next node is out of
+  view until the robot has turned), or
+* the next node of the route verifies with more inliers than the current one (and at least
+  ``switch_min_inliers``): it is the better target now.
+
+The final goal is reached when the servo reports convergence for ``settle_steps`` periods in a row,
+or when, aligned and close, it stops making progress (``settle_*`` in
+:class:`~topomap.config.NavigateConfig`: a docked unicycle cannot remove a small sideways offset).
+The disturbance estimates carry from one subgoal to the next.
+
+Recovery. After ``lost_after_steps`` periods without usable geometry, or when a subgoal is not
+reached within ``subgoal_timeout_s``, the navigator stops, penalises the edge it was following,
+re-localizes globally (turning in place to scan if needed) and re-plans.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from topomap.camera import CameraIntrinsics
+from topomap.config import LocalizeConfig, NavigateConfig, PlanConfig, ServoConfig
+from topomap.errors import NoRouteError
+from topomap.graph import TopoMap
+from topomap.localize import Localization, Localizer, Query
+from topomap.matching import Verification, verify
+from topomap.motion import STOP, Command, VehicleKind, vehicle_kind
+from topomap.plan import Planner, Route
+from topomap.servo.geometry import PoseStatus
+from topomap.servo.servo import AppearanceServo, ServoOutput, ServoStatus
+
+__all__ = ["RobotLike", "NavStatus", "EventKind", "NavEvent", "NavOutcome", "Navigator"]
+
+log = logging.getLogger(__name__)
+
+
+class RobotLike(Protocol):
+    """What the navigator needs from a robot: images, intrinsics, and a way to move."""
+
+    @property
+    def camera(self) -> CameraIntrinsics: ...
+
+    def render(self) -> np.ndarray: ...
+
+    def apply(self, command: Command, dt: float) -> object: ...
+
+
+class NavStatus(str, enum.Enum):
+    RUNNING = "running"
+    ARRIVED = "arrived"  # the final goal's image was reached (servo converged)
+    FAILED = "failed"  # could not localize, no route, or too many re-plans
+    TIMEOUT = "timeout"  # the time budget ran out
+
+
+class EventKind(str, enum.Enum):
+    LOCALIZED = "localized"
+    PLANNED = "planned"
+    STEP = "step"
+    SUBGOAL = "subgoal"  # an intermediate subgoal was reached; the next one is the target
+    LOST = "lost"
+    REPLANNED = "replanned"
+    ARRIVED = "arrived"
+    FAILED = "failed"
+    TIMEOUT = "timeout"
+
+
+@dataclass(frozen=True)
+class NavEvent:
+    """Something the navigator did. ``time_s``: robot time since the start [s]; ``subgoal``: the node
+    being servoed to; ``route``: the current plan; ``servo``: the control step (STEP events);
+    ``image``: the camera image of that step (not copied — do not modify)."""
+
+    kind: EventKind
+    time_s: float
+    message: str = ""
+    subgoal: int | None = None
+    route: tuple[int, ...] = ()
+    servo: ServoOutput | None = None
+    localization: Localization | None = None
+    command: Command | None = None
+    image: np.ndarray | None = field(default=None, repr=False)
+
+
+@dataclass
+class NavOutcome:
+    """Summary of a navigation: what the robot itself can tell (no ground truth here)."""
+
+    status: NavStatus = NavStatus.RUNNING
+    message: str = ""
+    start_node: int | None = None
+    goal: int | None = None
+    subgoals_reached: int = 0
+    replans: int = 0
+    duration_s: float = 0.0
+    steps: int = 0
+    route: tuple[int, ...] = ()
+    final_estimate_m: float = math.nan  # servo's own estimate of the remaining distance [m]
+    final_heading_estimate_deg: float = math.nan
+
+
+class _Failed(Exception):
+    """Internal: ends the run with a status and a message."""
+
+    def __init__(self, status: NavStatus, message: str):
+        super().__init__(message)
+        self.status = status
+
+
+class Navigator:
+    """Drives a robot to a goal node of ``tmap`` from images alone.
+
+    ``vehicle``: kinematics of the robot (unicycle / omni); ``localizer``: reused if given (a
+    :class:`~topomap.localize.Localizer` over ``tmap``). Iterate :meth:`run` to drive; the outcome is
+    in :attr:`outcome` afterwards.
+    """
+
+    def __init__(
+        self,
+        tmap: TopoMap,
+        robot: RobotLike,
+        vehicle: str | VehicleKind = VehicleKind.UNICYCLE,
+        config: NavigateConfig | None = None,
+        servo_config: ServoConfig | None = None,
+        localize_config: LocalizeConfig | None = None,
+        plan_config: PlanConfig | None = None,
+        localizer: Localizer | None = None,
+    ):
+        self.map = tmap
+        self.robot = robot
+        self.vehicle = vehicle_kind(vehicle)
+        self.config = config or NavigateConfig()
+        base = servo_config or ServoConfig()
+        self.servo = AppearanceServo(self.vehicle, base)
+        # Waypoints need no precise docking: inside switch_distance_m the servo only turns to the
+        # subgoal's heading (at the teach run's corners consecutive nodes differ by a turn).
+        dock = max(base.dock_radius_m, self.config.switch_distance_m)
+        self._waypoint_servo = {"dock_radius_m": dock, "undock_radius_m": max(base.undock_radius_m, 1.7 * dock)}
+        self._goal_servo = {"dock_radius_m": base.dock_radius_m, "undock_radius_m": base.undock_radius_m}
+        self.localizer = localizer or Localizer(tmap, localize_config or LocalizeConfig())
+        self.planner = Planner(tmap, plan_config or PlanConfig())
+        # the robot's images are processed at the map's working resolution
+        self.camera = robot.camera.fitted_to(*tmap.working_size)
+        self.outcome = NavOutcome()
+        self._time = 0.0
+        self._last_command: Command | None = None
+        self._estimate = None  # the servo's latest disturbance estimate
+
+    # ------------------------------------------------------------------ robot I/O
+    def _look(self) -> tuple[np.ndarray, Query]:
+        image = self.robot.render()
+        return image, self.localizer.prepare(image)
+
+    def _move(self, command: Command) -> None:
+        dt = self.config.control_period_s
+        self.robot.apply(command, dt)
+        self._time += dt
+        self._last_command = command
+        self.outcome.steps += 1
+
+    def _hold(self) -> None:
+        """Stand still for one period, cancelling the disturbances the servo has estimated."""
+        self._move(self.servo.hold_command(self._estimate) if self._estimate is not None else STOP)
+
+    def _match(self, q: Query, node: int) -> Verification:
+        return verify(q.features, self.map.nodes[node].features, self.map.config.match)
+
+    # ------------------------------------------------------------------ localization
+    def _localize(self) -> Iterator[NavEvent]:
+        """Global localization from the current image; turns in place to scan when unsure.
+        Sets ``self._here``; raises _Failed when no place is recognised in a full turn."""
+        cfg = self.config
+        best: Localization | None = None
+        turned = 0.0
+        while True:
+            image, q = self._look()
+            loc = self.localizer.localize_query(q)
+            if best is None or loc.confidence > best.confidence:
+                best = loc
+            if loc.localized:
+                break
+            if turned >= 2 * math.pi:
+                break
+            # scan: turn for scan_every_s, then look again
+            d_omega = self._estimate.d_omega if self._estimate is not None and self._estimate.ready else 0.0
+            turn = Command(0.0, 0.0, cfg.scan_turn_rps - d_omega)
+            for _ in range(max(1, int(round(cfg.scan_every_s / cfg.control_period_s)))):
+                self._move(turn)
+                turned += cfg.scan_turn_rps * cfg.control_period_s
+        self._hold()
+        if best is None or not best.localized:
+            conf = best.confidence if best else 0.0
+            raise _Failed(NavStatus.FAILED, f"could not localize in the map after a full turn (best confidence {conf:.2f})")
+        self._here = best.node
+        yield NavEvent(EventKind.LOCALIZED, self._time, f"at node {best.node} (confidence {best.confidence:.2f})",
+                       subgoal=best.node, localization=best)
+
+    def _plan(self, start: int, goal: int) -> Route:
+        try:
+            return self.planner.route(start, goal)
+        except NoRouteError as e:
+            raise _Failed(NavStatus.FAILED, str(e)) from None
+
+    # ------------------------------------------------------------------ main loop
+    def run(self, goal: int, start_node: int | None = None) -> Iterator[NavEvent]:
+        """Navigate to ``goal``; ``start_node`` skips the initial global localization (trusted)."""
+        self.map.node(goal)  # unknown ids fail before the robot moves
+        if start_node is not None:
+            self.map.node(start_node)
+        out = self.outcome = NavOutcome(goal=int(goal))
+        try:
+            if start_node is None:
+                yield from self._localize()
+            else:
+                self._here = int(start_node)
+            out.start_node = self._here
+            route = self._plan(self._here, goal)
+            out.route = tuple(route.nodes)
+            yield NavEvent(EventKind.PLANNED, self._time, f"route of {route.hops} hops: {list(route.nodes)}",
+                           subgoal=route.nodes[0], route=tuple(route.nodes))
+            budget = 60.0 + self.config.time_budget_s_per_hop * max(1, route.hops)
+            yield from self._follow(route, goal, budget)
+        except _Failed as f:
+            self._move(STOP)
+            out.status = f.status
+            out.message = str(f)
+            kind = EventKind.TIMEOUT if f.status is NavStatus.TIMEOUT else EventKind.FAILED
+            yield NavEvent(kind, self._time, str(f), route=out.route)
+        out.duration_s = self._time
+
+    def _target(self, nodes: list[int], i: int) -> None:
+        """Point the servo at ``nodes[i]``: new references, docking radius of a waypoint or of the goal."""
+        # the side of the subgoal camera the robot comes from: behind it (x < 0) when following the
+        # taught direction, in front of it when driving the route backwards
+        self._approach_side: float | None = None
+        self.servo.retarget()
+        self.servo.reconfigure(**(self._goal_servo if i == len(nodes) - 1 else self._waypoint_servo))
+
+    def _follow(self, route: Route, goal: int, budget_s: float) -> Iterator[NavEvent]:
+        cfg, out = self.config, self.outcome
+        nodes = list(route.nodes)
+        i = 0  # index of the current subgoal in nodes
+        lost = converged_streak = 0
+        since_switch = self._time
+        history: list[tuple[float, float, float]] = []  # (time, estimated distance, heading) at the goal
+        self._target(nodes, i)
+        while True:
+            if self._time > budget_s:
+                raise _Failed(NavStatus.TIMEOUT, f"time budget of {budget_s:.0f} s exhausted at subgoal {nodes[i]}")
+            sub = nodes[i]
+            final = i == len(nodes) - 1
+            image, q = self._look()
+            v = self._match(q, sub)
+            use = v.inlier_matches if v.inliers >= self.map.config.match.min_inliers else v.matches
+            goal_kp = self.map.nodes[sub].features.keypoints
+            s = self.servo.step(q.features.keypoints[use.ia], goal_kp[use.ib], self.camera,
+                                cfg.control_period_s, self._last_command, goal_camera=self.map.camera)
+            yield NavEvent(EventKind.STEP, self._time, s.status.value, subgoal=sub, route=tuple(nodes), servo=s,
+                           command=s.command, image=image)
+            self._estimate = s.disturbance
+            out.final_estimate_m = s.position_error_m
+            out.final_heading_estimate_deg = math.degrees(s.heading_error_rad) if math.isfinite(s.heading_error_rad) else math.nan
+
+            # -- final goal: settle
+            if final:
+                converged_streak = converged_streak + 1 if s.converged else 0
+                history.append((self._time, s.position_error_m, s.heading_error_rad))
+                if converged_streak >= cfg.settle_steps or self._stalled_at_goal(history):
+                    self._move(STOP)
+                    out.status = NavStatus.ARRIVED
+                    out.message = f"arrived at node {goal}"
+                    yield NavEvent(EventKind.ARRIVED, self._time, out.message, subgoal=goal, route=tuple(nodes))
+                    return
+            # -- intermediate subgoal: switch?
+            else:
+                reason = self._switch_reason(q, s, nodes[i + 1], v)
+                if reason:
+                    i += 1
+                    out.subgoals_reached += 1
+                    since_switch = self._time
+                    lost = 0
+                    self._target(nodes, i)
+                    yield NavEvent(EventKind.SUBGOAL, self._time, f"reached {sub} ({reason}); next {nodes[i]}",
+                                   subgoal=nodes[i], route=tuple(nodes))
+                    continue
+            # -- lost or stuck: re-localize and re-plan
+            lost = lost + 1 if s.status is ServoStatus.LOST else 0
+            stuck = self._time - since_switch > cfg.subgoal_timeout_s and not final
+            if lost >= cfg.lost_after_steps or stuck:
+                why = "lost sight of" if lost >= cfg.lost_after_steps else "could not reach"
+                prev = nodes[i - 1] if i > 0 else None
+                if prev is not None:
+                    self.planner.penalize(prev, sub)
+                yield NavEvent(EventKind.LOST, self._time, f"{why} subgoal {sub}", subgoal=sub, route=tuple(nodes))
+                out.replans += 1
+                if out.replans > cfg.max_replans:
+                    raise _Failed(NavStatus.FAILED, f"gave up after {cfg.max_replans} re-plans ({why} subgoal {sub})")
+                self._hold()
+                yield from self._localize()
+                new = self._plan(self._here, goal)
+                nodes, i = list(new.nodes), 0
+                out.route = tuple(nodes)
+                lost = converged_streak = 0
+                history = []
+                since_switch = self._time
+                self._target(nodes, i)
+                yield NavEvent(EventKind.REPLANNED, self._time, f"new route {nodes}", subgoal=nodes[0], route=tuple(nodes))
+                continue
+            self._move(s.command)
+
+    def _stalled_at_goal(self, history: list[tuple[float, float, float]]) -> bool:
+        """Aligned, close, and no progress over the settle window (see NavigateConfig.settle_*)."""
+        cfg = self.config
+        now = history[-1][0]
+        if now - history[0][0] < cfg.settle_window_s:
+            return False
+        window = [h for h in history if h[0] >= now - cfg.settle_window_s]
+        dist = np.array([h[1] for h in window])
+        head = np.array([h[2] for h in window])
+        if not (np.isfinite(dist).all() and np.isfinite(head).all()):
+            return False
+        tol = math.radians(self.servo.config.heading_tol_deg)
+        return bool(np.abs(head).max() < tol and dist.max() < cfg.settle_max_m and np.ptp(dist) < cfg.settle_progress_m)
+
+    def _switch_reason(self, q: Query, s: ServoOutput, nxt: int, v: Verification) -> str:
+        """Why the current intermediate subgoal counts as reached, or ``""``."""
+        cfg = self.config
+        aligned = math.isfinite(s.heading_error_rad) and abs(s.heading_error_rad) < math.radians(cfg.switch_heading_deg)
+        if s.status is not ServoStatus.LOST and aligned:
+            if math.isfinite(s.position_error_m) and s.position_error_m < cfg.switch_distance_m:
+                return f"estimated {s.position_error_m:.2f} m away"
+            if s.pose.status is PoseStatus.OK:
+                if self._approach_side is None:
+                    self._approach_side = math.copysign(1.0, s.pose.x_s)
+                elif s.pose.x_s * self._approach_side < 0:
+                    return "driven past it"
+        vn = self._match(q, nxt)
+        if vn.inliers >= cfg.switch_min_inliers and vn.inliers > v.inliers:
+            return f"next node matches better ({vn.inliers} vs {v.inliers} inliers)"
+        return ""
