@@ -314,13 +314,15 @@ def test_short_shortcut_along_a_sequence_follows_the_taught_chain():
 
 
 def test_routes_follow_the_taught_direction_when_they_can():
-    # a loop 0-1-2-3-4-5-0 taught in increasing order: from 2 to 1 backwards is one hop, forward
-    # around the loop five; reversing costs reverse_factor times more
-    edges = [(i, i + 1, STRONG, 40.0) for i in range(5)]
-    m = make_map(6, edges + [(0, 5, STRONG, 40.0)])
+    # a loop 0-1-...-11-0 taught in increasing order (11-0 a loop closure): from 6 back to 4 is two
+    # hops against the taught direction, forward around the loop ten; reversing costs
+    # reverse_factor times more
+    edges = [(i, i + 1, STRONG, 40.0) for i in range(11)]
+    m = make_map(12, edges + [(0, 11, STRONG, 40.0)])
     p = Planner(m)
     assert p.cost(1, 2) < p.cost(2, 1) == pytest.approx(PlanConfig().reverse_factor * p.cost(1, 2))
-    assert p.route(2, 1).nodes == [2, 1]  # 3 x one hop is still cheaper than five hops forward
-    assert Planner(m, PlanConfig(reverse_factor=6.0)).route(2, 1).nodes == [2, 3, 4, 5, 0, 1]
+    assert p.route(6, 4).nodes == [6, 5, 4]  # 2 x 3 hops is still cheaper than ten hops forward
+    forward = [6, 7, 8, 9, 10, 11, 0, 1, 2, 3, 4]
+    assert Planner(m, PlanConfig(reverse_factor=20.0)).route(6, 4).nodes == forward
     # a dead end can only be left backwards
-    assert Planner(make_map(3, edges[:2]), PlanConfig(reverse_factor=6.0)).route(2, 0).nodes == [2, 1, 0]
+    assert Planner(make_map(3, edges[:2]), PlanConfig(reverse_factor=20.0)).route(2, 0).nodes == [2, 1, 0]
