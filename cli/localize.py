@@ -75,7 +75,7 @@ def localize(
     dt = (time.perf_counter() - t0) / len(results)
     frames = {n: [f.source for f in m.frames if f.node == n] for n in m.nodes}
     rows = [
-        {"query": name, "node": r.node, "frames": frames[r.node], "confidence": round(r.confidence, 4),
+        {"query": name, "node": r.node, "frames": frames[r.node], "confidence": r.confidence,
          "status": r.status.value, "inliers": r.inliers, "candidates": [c.node for c in r.candidates[:5]]}
         for name, r in results
     ]

@@ -142,11 +142,14 @@ def read_correspondences(path: str | Path, tmap) -> GroundTruth:
             f"{path.name} is not a correspondence CSV: it needs a query_file column and matching_ref_indices or "
             f"matching_ref_files (columns found: {', '.join(sorted(cols))})"
         )
-    frames = _map_frames(tmap)
+    # every input frame counts as known, a skipped (unreadable) one too: it is simply represented
+    # by no node, so one bad reference image does not invalidate the whole ground truth
+    frames = list(tmap.frames)
     by_index = {f.index: f.source for f in frames if f.sequence == 0}
     known = {f.source for f in frames}
     matches: dict[str, frozenset[str]] = {}
     bad_index: list[str] = []
+    bad_files: set[str] = set()
     for i, r in enumerate(rows, start=2):
         q = Path(r[qcol]).name
         if "matching_ref_files" in cols:
@@ -165,8 +168,9 @@ def read_correspondences(path: str | Path, tmap) -> GroundTruth:
                     bad_index.append(str(idx))
                 else:
                     refs.add(by_index[idx])
-        _check_known(refs, known, path.name)
+        bad_files.update(refs - known)
         matches[q] = frozenset(refs)
+    _check_known(bad_files, known, path.name)  # after all rows, so the message lists a few of them
     if bad_index:
         raise DatasetError(
             f"{path.name} names frame indices that are not in the map (e.g. {', '.join(sorted(set(bad_index), key=int)[:3])}); "
@@ -178,7 +182,7 @@ def read_correspondences(path: str | Path, tmap) -> GroundTruth:
 def same_name(query_names: list[str], tmap, tolerance: int = 0) -> GroundTruth:
     """A query matches the map frame with the same file name (and the ``tolerance`` frames before
     and after it in that frame's sequence)."""
-    frames = _map_frames(tmap)
+    frames = list(tmap.frames)  # skipped frames too: their neighbours may be in the map (tolerance)
     by_name = {f.source: f for f in frames}
     by_pos = {(f.sequence, f.index): f.source for f in frames}
     missing = [q for q in query_names if q not in by_name]

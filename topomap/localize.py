@@ -117,6 +117,21 @@ class Query:
     descriptor: np.ndarray
 
 
+def _top_rows(x: np.ndarray, m: int) -> np.ndarray:
+    """``np.argsort(-x, kind="stable")[:m]`` without sorting all of ``x``: the ``m`` largest, ties in
+    index order. A full sort of 100k scores costs ~8 ms per query; a partition plus a sort of the
+    few rows at or above the m-th value costs well under 1 ms."""
+    n = len(x)
+    m = min(max(int(m), 0), n)
+    if m == 0:
+        return np.zeros(0, np.intp)
+    if n <= 1024:
+        return np.argsort(-x, kind="stable")[:m]
+    threshold = np.partition(x, n - m)[n - m]  # the m-th largest value
+    rows = np.flatnonzero(x >= threshold)  # all rows reaching it (ties included), index order
+    return rows[np.argsort(-x[rows], kind="stable")[:m]]
+
+
 def _robust_z(x: np.ndarray) -> np.ndarray:
     """(x - median) / (1.4826 MAD), with a floor on the scale so near-constant scores stay ~0."""
     if len(x) == 0:
@@ -200,7 +215,7 @@ class Localizer:
     def verify_candidates(self, q: Query, score: np.ndarray, k: int | None = None) -> dict[int, Verification]:
         """Geometric verification of the ``k`` best-scoring nodes: ``{row: Verification}``."""
         k = self.config.shortlist_k if k is None else k
-        return self.verify_rows(q, np.argsort(-score, kind="stable")[: max(k, 0)])
+        return self.verify_rows(q, _top_rows(score, k))
 
     def verify_rows(self, q: Query, rows: Iterable[int]) -> dict[int, Verification]:
         """Geometric verification of the query against the given node rows."""
@@ -232,7 +247,7 @@ class Localizer:
         return float(p[row] + p[self._adjacency.indices[lo:hi]].sum())
 
     def answer(self, p: np.ndarray, score: np.ndarray, checks: dict[int, Verification], rank_by: np.ndarray) -> Localization:
-        order = np.argsort(-rank_by, kind="stable")
+        order = _top_rows(rank_by, max(10, self.config.shortlist_k))
         best = int(order[0])
         conf = min(1.0, self.neighbourhood_mass(p, best))
         cands = tuple(

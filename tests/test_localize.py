@@ -1,0 +1,304 @@
+"""topomap.localize: single-frame localization (own node, "unknown", any image format, reusable,
+missing index) and the sequence filter (kidnapping, standing still), on a seeded synthetic route and
+on the real corridor (Recall@1 of both modes)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from conftest import dataset
+from map_synth import FRAME_SIZE, scene, window, write_sequence
+
+from topomap.build import build_map
+from topomap.config import BuildConfig, FeatureConfig, LocalizeConfig
+from topomap.errors import ConfigError, IndexMissingError
+from topomap.evaluate import evaluate
+from topomap.groundtruth import read_correspondences
+from topomap.images import open_sequence
+from topomap.localize import Localization, LocalizationStatus, Localizer, SequenceLocalizer
+from topomap.store import load_map, save_map
+
+#: Synthetic route: a 6000 px wide textured wall seen every STEP px; with keyframe_min_ratio 0.5
+#: nearly every view becomes a node, so a query taken at a view's position has one right answer.
+STEP = 120.0
+XS = np.arange(0.0, 3600.0, STEP)
+CONFIG = BuildConfig(features=FeatureConfig(max_features=500), vocabulary_words=4096, keyframe_min_ratio=0.5)
+
+
+@dataclasses.dataclass
+class Route:
+    texture: np.ndarray
+    map: object  # TopoMap
+    loc: Localizer
+    node_of_view: list[int]  # node representing view i (at XS[i])
+
+    def view(self, i: int, dx: float = 0.0, dy: float = 0.0) -> np.ndarray:
+        return window(self.texture, XS[i] + dx, y=40.0 + dy)
+
+    def second_pass(self, i: int, seed: int = 5) -> np.ndarray:
+        """View i seen again: 5 px right, 3 px lower, other sensor noise."""
+        rng = np.random.default_rng(seed + i)
+        return np.clip(self.view(i, 5.0, 3.0) + rng.normal(0, 4.0, FRAME_SIZE[::-1]), 0, 255).astype(np.uint8)
+
+    def right(self, i: int, node: int) -> bool:
+        """A node is right for view i when it represents view i or a view next to it."""
+        return node in {self.node_of_view[j] for j in range(max(0, i - 1), min(len(XS), i + 2))}
+
+
+@pytest.fixture(scope="module")
+def route(tmp_path_factory) -> Route:
+    folder = tmp_path_factory.mktemp("route")
+    tex = scene(3, width=6000)
+    write_sequence(folder, [window(tex, x, y=40.0) for x in XS])
+    m = build_map(folder, CONFIG)
+    assert len(m.nodes) >= 0.8 * len(XS) and m.index is not None  # the premise of the tests below
+    return Route(tex, m, Localizer(m), [f.node for f in m.frames])
+
+
+@pytest.fixture(scope="module")
+def second_pass(route) -> list:
+    """Prepared queries of the second pass over every view."""
+    return [route.loc.prepare(route.second_pass(i)) for i in range(len(XS))]
+
+
+# ============================================================================= single frame
+def test_a_map_view_localizes_to_its_own_node(route):
+    for i in (0, len(XS) // 2, len(XS) - 1):
+        node = route.node_of_view[i]
+        r = route.loc.localize(route.view(i))
+        assert isinstance(r, Localization)
+        assert (r.node, r.status) == (node, LocalizationStatus.LOCALIZED) and r.localized
+        assert r.confidence > 0.9 and r.inliers >= 100
+        assert r.candidates[0].node == node and r.candidates[0].inliers == r.inliers
+        assert r.verification is not None and r.verification.F.shape == (3, 3)
+        probs = [c.probability for c in r.candidates]
+        assert probs == sorted(probs, reverse=True) and 0.0 <= sum(probs) <= 1.0 + 1e-9
+
+
+def test_second_pass_single_frame(route, second_pass):
+    answers = [route.loc.localize_query(q) for q in second_pass]
+    assert all(route.right(i, r.node) for i, r in enumerate(answers))
+    assert all(r.localized for r in answers)
+
+
+@pytest.mark.parametrize("what", ["noise", "flat", "other scene", "another scene"])
+def test_an_unrelated_image_is_unknown(route, what):
+    rng = np.random.default_rng(1)
+    img = {
+        "noise": lambda: rng.integers(0, 256, FRAME_SIZE[::-1], dtype=np.uint8),
+        "flat": lambda: np.full(FRAME_SIZE[::-1], 90, np.uint8),
+        "other scene": lambda: window(scene(11), 500.0, y=40.0),
+        "another scene": lambda: window(scene(12), 100.0, y=20.0),
+    }[what]()
+    r = route.loc.localize(img)
+    assert r.status is LocalizationStatus.UNKNOWN and not r.localized
+    assert r.confidence < route.loc.config.min_confidence
+    assert r.node in route.map.nodes  # still a best guess
+
+
+def _formats(img: np.ndarray) -> dict[str, np.ndarray]:
+    bgr = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    return {
+        "colour": bgr,
+        "rgba": cv2.cvtColor(img, cv2.COLOR_GRAY2BGRA),
+        "16-bit": img.astype(np.uint16) * 257,
+        "float [0, 1]": img.astype(np.float32) / 255.0,
+        "single channel axis": img[:, :, None],
+        "larger": cv2.resize(bgr, (640, 480), interpolation=cv2.INTER_CUBIC),
+        "smaller": cv2.resize(img, (320, 240), interpolation=cv2.INTER_AREA),
+    }
+
+
+def test_query_of_another_size_depth_or_channel_count(route):
+    i = len(XS) // 3
+    node = route.node_of_view[i]
+    for name, img in _formats(route.view(i)).items():
+        r = route.loc.localize(img)
+        assert r.node == node and r.localized, name
+    # another aspect ratio is stretched to the map's working size: an answer, not an error
+    odd = route.loc.localize(cv2.resize(route.view(i), (300, 300)))
+    assert odd.node in route.map.nodes and 0.0 <= odd.confidence <= 1.0
+
+
+def test_localizer_is_reusable_and_state_free(route):
+    a, b = route.view(3), route.view(20)
+    first = route.loc.localize(a)
+    other = route.loc.localize(b)
+    again = route.loc.localize(a)
+    assert other.node != first.node
+    assert (again.node, again.confidence, again.inliers, again.candidates) == (
+        first.node, first.confidence, first.inliers, first.candidates)
+    assert [r.node for r in route.loc.localize_all([a, b])] == [first.node, other.node]
+
+
+def test_features_of_hook_and_shortlist_size(route):
+    asked = []
+
+    def features_of(n: int):
+        asked.append(n)
+        return route.map.nodes[n].features
+
+    loc = Localizer(route.map, LocalizeConfig(shortlist_k=3), features_of=features_of)
+    r = loc.localize(route.view(7))
+    assert r.node == route.node_of_view[7] and len(asked) == 3 and r.node in asked
+    assert sum(c.inliers >= 0 for c in r.candidates) == 3  # only the shortlist is verified
+    blind = Localizer(route.map, LocalizeConfig(shortlist_k=0)).localize(route.view(7))
+    assert blind.inliers == 0 and all(c.inliers == -1 for c in blind.candidates)
+
+
+def test_map_without_index(route):
+    bare = dataclasses.replace(route.map, index=None)
+    for descriptor in ("fused", "bow"):
+        with pytest.raises(IndexMissingError, match="build it with `topomap index MAP`") as e:
+            Localizer(bare, LocalizeConfig(descriptor=descriptor))
+        assert "--descriptor thumbnail" in str(e.value)
+    assert Localizer(bare).mode == "thumbnail"  # auto falls back to the whole-image descriptor
+    loc = Localizer(bare, LocalizeConfig(descriptor="thumbnail"))
+    i = len(XS) // 2
+    r = loc.localize(route.view(i))
+    assert loc.mode == "thumbnail" and r.node == route.node_of_view[i] and r.localized
+
+
+def test_bad_localize_config(route):
+    with pytest.raises(ConfigError, match="unknown descriptor 'sift'; choose one of: auto, bow, fused, thumbnail"):
+        Localizer(route.map, LocalizeConfig(descriptor="sift"))
+    with pytest.raises(ConfigError, match="min_confidence"):
+        LocalizeConfig(min_confidence=1.5)
+    empty = dataclasses.replace(route.map, nodes={}, index=None)
+    with pytest.raises(ConfigError, match="no nodes"):
+        Localizer(empty)
+
+
+def test_top_rows_equals_a_stable_full_sort():
+    """The partial selection used on big maps returns exactly what a stable full sort returns."""
+    from topomap.localize import _top_rows
+
+    rng = np.random.default_rng(0)
+    for n in (5, 1500, 20_000):
+        for x in (rng.standard_normal(n), rng.integers(0, 4, n).astype(float), np.zeros(n)):
+            for m in (0, 1, 10, 37, n + 3):
+                np.testing.assert_array_equal(_top_rows(x, m), np.argsort(-x, kind="stable")[:m])
+
+
+# ============================================================================= sequence filter
+def test_sequence_follows_the_second_pass(route, second_pass):
+    filt = SequenceLocalizer(route.loc)
+    answers = [filt.update_query(q) for q in second_pass]
+    assert all(route.right(i, r.node) for i, r in enumerate(answers))
+    assert filt.belief.shape == (len(route.map.nodes),) and filt.belief.sum() == pytest.approx(1.0)
+    filt.reset()
+    assert filt.belief is None
+    assert filt.update_query(second_pass[4]).node == SequenceLocalizer(route.loc).update_query(second_pass[4]).node
+
+
+#: Frames the filter may need to get back on a right node after a kidnapping (synthetic route).
+KIDNAP_BOUND_SYNTHETIC = 3
+
+
+@pytest.mark.parametrize("before, after", [((0, 10), (15, 27)), ((18, 28), (2, 14)), ((5, 15), (25, 30))])
+def test_kidnapped_filter_recovers_within_bound(route, second_pass, before, after):
+    filt = SequenceLocalizer(route.loc)
+    for i in range(*before):
+        assert route.right(i, filt.update_query(second_pass[i]).node)
+    ok = [route.right(i, filt.update_query(second_pass[i]).node) for i in range(*after)]
+    first = ok.index(True)
+    assert first < KIDNAP_BOUND_SYNTHETIC and all(ok[first:]), ok
+
+
+def test_standing_still_keeps_one_answer(route, second_pass):
+    for i in (2, 14, 28):
+        filt = SequenceLocalizer(route.loc)
+        nodes = [filt.update_query(second_pass[i]).node for _ in range(15)]
+        assert len(set(nodes)) == 1 and route.right(i, nodes[0]), nodes
+
+
+@pytest.mark.xfail(strict=True, reason="known gap (reported): the filter has no 'not in this map' state, so "
+                   "frames of an unmapped place concentrate the belief on some node within a few frames")
+@pytest.mark.parametrize("motion", ["walk", "standing still"])
+def test_sequence_of_an_unmapped_place_stays_unknown(route, motion):
+    foreign = scene(12)
+    xs = [60.0 * i for i in range(25)] if motion == "walk" else [300.0] * 25
+    frames = [window(foreign, x, y=40.0) for x in xs]
+    assert all(not route.loc.localize(frames[i]).localized for i in (0, 12, 24))  # single frames say so
+    filt = SequenceLocalizer(route.loc)
+    answers = [filt.update(f) for f in frames]
+    assert not any(a.localized for a in answers), [round(a.confidence, 2) for a in answers]
+
+
+# ============================================================================= real data: corridor
+def corridor_map_file(tmp_path_factory) -> Path:
+    """The corridor map (built from ref/ with the defaults), built once per test session and shared
+    with tests/test_cli_localize.py through the session's base temporary folder."""
+    path = tmp_path_factory.getbasetemp() / "corridor-map" / "corridor.topomap"
+    if not path.exists():
+        path.parent.mkdir(exist_ok=True)
+        save_map(build_map(dataset("corridor") / "ref"), path)
+    return path
+
+
+@dataclasses.dataclass
+class Corridor:
+    map: object
+    loc: Localizer
+    names: list[str]
+    queries: list  # prepared query/ images, in order
+    good: list[set[int]]  # right nodes per query
+
+
+@pytest.fixture(scope="module")
+def corridor(tmp_path_factory) -> Corridor:
+    root = dataset("corridor")
+    m = load_map(corridor_map_file(tmp_path_factory))
+    loc = Localizer(m)
+    truth = read_correspondences(root / "ground_truth.csv", m)
+    frames: dict[int, set[str]] = {n: set() for n in m.nodes}
+    for f in m.frames:
+        frames[f.node].add(f.source)
+    seq = list(open_sequence(root / "query"))
+    return Corridor(m, loc, [f.name for f in seq], [loc.prepare(f.image) for f in seq],
+                    [truth.correct_nodes(f.name, frames) for f in seq])
+
+
+@pytest.mark.slow
+def test_corridor_recall_single_and_sequence(corridor):
+    """Issue 3: single-frame Recall@1 >= 0.50, sequence >= 0.75 (node level), sequence above single."""
+    truth = read_correspondences(dataset("corridor") / "ground_truth.csv", corridor.map)
+    single = evaluate(list(zip(corridor.names, map(corridor.loc.localize_query, corridor.queries))), truth, corridor.map)
+    filt = SequenceLocalizer(corridor.loc)
+    seq = evaluate(list(zip(corridor.names, map(filt.update_query, corridor.queries))), truth, corridor.map)
+    assert corridor.loc.mode == "fused" and single.queries_with_match == 111
+    assert single.recall_at[1] >= 0.50 and seq.recall_at[1] >= 0.75, (single.recall_at, seq.recall_at)
+    assert seq.recall_at[1] > single.recall_at[1] + 0.1
+    assert single.recall_at[10] >= 0.9 and seq.auc > single.auc
+
+
+#: Frames the filter may need after a kidnapping on the corridor (measured worst case 16 frames:
+#: the jump probability 1e-3 must be overcome by appearance evidence alone).
+KIDNAP_BOUND_CORRIDOR = 20
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("before, after", [((70, 100), (10, 50)), ((80, 100), (0, 40)), ((0, 20), (40, 80)),
+                                           ((40, 60), (90, 111))])
+def test_corridor_kidnapping(corridor, before, after):
+    filt = SequenceLocalizer(corridor.loc)
+    for i in range(*before):
+        filt.update_query(corridor.queries[i])
+    ok = [filt.update_query(corridor.queries[i]).node in corridor.good[i] for i in range(*after)]
+    assert True in ok[:KIDNAP_BOUND_CORRIDOR], ok
+
+
+#: A camera standing still: the answer settles within this many frames (measured worst case 8).
+STILL_SETTLE_FRAMES = 10
+
+
+@pytest.mark.slow
+def test_corridor_standing_still(corridor):
+    for i in range(0, 111, 10):
+        filt = SequenceLocalizer(corridor.loc)
+        nodes = [filt.update_query(corridor.queries[i]).node for _ in range(20)]
+        assert len(set(nodes[STILL_SETTLE_FRAMES:])) == 1, (i, nodes)
