@@ -1,8 +1,9 @@
 """Image sequence -> keyframes -> sequential and loop-closure edges (THESIS.md section 4).
 
 Keyframing: each frame is matched to the current keyframe with epipolar verification. While they
-share enough verified matches the frame is *represented* by the keyframe's node. When the matches
-fall below the threshold, the last frame that still matched well becomes the next keyframe (so
+share enough verified matches, which moved little across the image, the frame is *represented* by the
+keyframe's node. When the matches fall below the threshold (or moved too far), the last frame that
+still matched well becomes the next keyframe (so
 consecutive keyframes keep plenty of common, verified features — servoing between them stays
 feasible, far above the 3-point minimum of THESIS.md section 3) and the frame is matched again
 against it; if even that fails, the frame itself starts a node.
@@ -80,8 +81,9 @@ class _Candidate:
 
 
 def _is_kept(v: Verification, keyframe: Features, cfg: BuildConfig) -> bool:
+    """The frame stays with the keyframe: enough verified matches, moved little across the image."""
     need = max(cfg.keyframe_min_inliers, int(np.ceil(cfg.keyframe_min_ratio * len(keyframe))))
-    return v.inliers >= need
+    return v.inliers >= need and v.flow_px <= cfg.keyframe_max_flow * keyframe.image_size[0]
 
 
 def build_map(
