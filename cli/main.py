@@ -9,6 +9,7 @@ from __future__ import annotations
 # Command modules (imported for their registrations).
 from topomap_cli import build  # noqa: F401
 from topomap_cli import localize  # noqa: F401
+from topomap_cli import navigate  # noqa: F401
 from topomap_cli import observability  # noqa: F401
 from topomap_cli import plan  # noqa: F401
 from topomap_cli import sim  # noqa: F401

@@ -167,7 +167,9 @@ def test_penalize_then_replan_takes_the_alternative(square):
     assert p.penalties == {(1, 2): p.config.failure_factor}
     again = p.route(0, 2)
     assert again.nodes == [0, 3, 4, 2] and again.cost > first.cost
-    assert p.route(1, 2).nodes == [1, 0, 3, 4, 2]  # even from 1: the detour costs less than 10x
+    assert p.route(1, 2).nodes == [1, 2]  # from 1, one failure does not outweigh a four-hop detour ...
+    p.penalize(1, 2)
+    assert p.route(1, 2).nodes == [1, 0, 3, 4, 2]  # ... a second one does
     bridge = make_map(3, [(0, 1, 200, 50.0), (1, 2, 200, 50.0)])
     q = Planner(bridge)
     q.penalize(1, 2)
@@ -326,3 +328,11 @@ def test_routes_follow_the_taught_direction_when_they_can():
     assert Planner(m, PlanConfig(reverse_factor=20.0)).route(6, 4).nodes == forward
     # a dead end can only be left backwards
     assert Planner(make_map(3, edges[:2]), PlanConfig(reverse_factor=20.0)).route(2, 0).nodes == [2, 1, 0]
+
+
+def test_local_shortcuts_carry_the_taught_direction():
+    # backwards, a local shortcut must not be cheaper than the reversed chain it skips
+    m = make_map(12, [(i, i + 1, STRONG, 40.0) for i in range(11)] + [(5, 8, STRONG, 40.0)])
+    p = Planner(m)
+    assert p.cost(8, 5) == pytest.approx(p.config.reverse_factor * p.cost(5, 8))
+    assert p.route(9, 4).nodes == [9, 8, 7, 6, 5, 4]

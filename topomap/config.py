@@ -79,8 +79,11 @@ class BuildConfig:
     # below it a new node starts. Servoing along an edge needs many more than the 3-point minimum
     # (THESIS.md sections 3-4), hence far above 3.
     keyframe_min_inliers: int = 60
-    # ... and while the verified matches keep at least this fraction of the keyframe's features.
+    # ... and while the verified matches keep at least this fraction of the keyframe's features ...
     keyframe_min_ratio: float = 0.1
+    # ... and moved less than this fraction of the image width (median): servoing across a large
+    # image motion (a corner turned in one step) pushes the features out of view.
+    keyframe_max_flow: float = 0.15
     # Loop closure: an edge joins two non-consecutive nodes sharing this many verified matches.
     loop_min_inliers: int = 40
     loop_min_inlier_ratio: float = 0.25  # ... and this fraction of the tentative matches
@@ -105,6 +108,8 @@ class BuildConfig:
             )
         if not 0 <= self.keyframe_min_ratio < 1:
             raise ConfigError(f"keyframe_min_ratio={self.keyframe_min_ratio} must lie in [0, 1)")
+        if not 0 < self.keyframe_max_flow <= 1:
+            raise ConfigError(f"keyframe_max_flow={self.keyframe_max_flow} must lie in (0, 1]")
         if self.loop_shortlist_k < 1:
             raise ConfigError("loop_shortlist_k must be at least 1")
         if self.vocabulary_words < 16:
@@ -348,7 +353,7 @@ class PlanConfig:
     # An edge with fewer inliers than the chance level (frames that did not verify) is still
     # traversable but is taken only when every verified detour costs more than this [hops].
     unverified_cost: float = 1000.0
-    failure_factor: float = 10.0  # Planner.penalize multiplies a failed edge's cost by this
+    failure_factor: float = 3.0  # Planner.penalize multiplies a failed edge's cost by this
     # A non-sequential edge joining two nodes of one sequence at most this many sequential steps
     # apart costs at least as much as the taught chain between them: consecutive keyframes were
     # chosen so that servoing between them stays feasible, a shortcut across them is a longer
@@ -418,6 +423,14 @@ class NavigateConfig:
     # lateral offset by turning in place. Then: heading within the servo's tolerance, the estimated
     # distance changed less than settle_progress_m over settle_window_s, and is below settle_max_m.
     settle_window_s: float = 3.0
+    # ... and in both cases the image agrees: the verified matches between the current image and the
+    # goal keyframe moved less than this fraction of the image width (median). The pose alone cannot
+    # certify arrival: facing a single wall (a plane) the planar relative pose is ambiguous.
+    arrive_image_error: float = 0.02
+    # ... and the whole image agrees: its thumbnail descriptor is closer to the goal's than this
+    # fraction of the goal's distance to its neighbouring keyframes. Look-alike textures elsewhere can
+    # match part of the view perfectly; the rest of the image then disagrees.
+    arrive_descriptor_fraction: float = 0.5
     settle_progress_m: float = 0.01
     settle_max_m: float = 0.15
     lost_after_steps: int = 15  # steps without usable geometry before re-localizing
@@ -432,6 +445,10 @@ class NavigateConfig:
                      "time_budget_s_per_hop"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"navigate {name} must be positive")
+        if not 0 < self.arrive_descriptor_fraction < 1:
+            raise ConfigError("navigate arrive_descriptor_fraction must lie in (0, 1)")
+        if not 0 < self.arrive_image_error < 1:
+            raise ConfigError("navigate arrive_image_error must lie in (0, 1) (a fraction of the image width)")
         if self.settle_steps < 1 or self.lost_after_steps < 1 or self.max_replans < 0:
             raise ConfigError("settle_steps and lost_after_steps must be >= 1, max_replans >= 0")
 

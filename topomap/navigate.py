@@ -19,7 +19,10 @@ counts as reached — and the next node becomes the target — when
 
 The final goal is reached when the servo reports convergence for ``settle_steps`` periods in a row,
 or when, aligned and close, it stops making progress (``settle_*`` in
-:class:`~topomap.config.NavigateConfig`: a docked unicycle cannot remove a small sideways offset).
+:class:`~topomap.config.NavigateConfig`: a docked unicycle cannot remove a small sideways offset) —
+and in both cases only if the image agrees: the verified matches with the goal keyframe have moved
+less than ``arrive_image_error`` of the image width. Facing a single wall the planar relative pose is
+ambiguous, so the pose estimate alone cannot certify arrival.
 The disturbance estimates carry from one subgoal to the next.
 
 Recovery. After ``lost_after_steps`` periods without usable geometry, or when a subgoal is not
@@ -44,6 +47,7 @@ from topomap.errors import NoRouteError
 from topomap.graph import TopoMap
 from topomap.localize import Localization, Localizer, Query
 from topomap.matching import Verification, verify
+from topomap.retrieval import sad
 from topomap.motion import STOP, Command, VehicleKind, vehicle_kind
 from topomap.plan import Planner, Route
 from topomap.servo.geometry import PoseStatus
@@ -164,6 +168,7 @@ class Navigator:
         self._time = 0.0
         self._last_command: Command | None = None
         self._estimate = None  # the servo's latest disturbance estimate
+        self._neighbour_sad: dict[int, float] = {}
 
     # ------------------------------------------------------------------ robot I/O
     def _look(self) -> tuple[np.ndarray, Query]:
@@ -259,7 +264,7 @@ class Navigator:
         cfg, out = self.config, self.outcome
         nodes = list(route.nodes)
         i = 0  # index of the current subgoal in nodes
-        lost = converged_streak = 0
+        lost = converged_streak = false_arrival = 0
         since_switch = self._time
         history: list[tuple[float, float, float]] = []  # (time, estimated distance, heading) at the goal
         self._target(nodes, i)
@@ -282,9 +287,13 @@ class Navigator:
 
             # -- final goal: settle
             if final:
-                converged_streak = converged_streak + 1 if s.converged else 0
+                image_ok = self._image_agrees(q, v, sub)
+                converged_streak = converged_streak + 1 if (s.converged and image_ok) else 0
                 history.append((self._time, s.position_error_m, s.heading_error_rad))
-                if converged_streak >= cfg.settle_steps or self._stalled_at_goal(history):
+                stalled = self._stalled_at_goal(history)
+                # the servo believes it is there but the image disagrees: a look-alike place
+                false_arrival = false_arrival + 1 if ((s.converged or stalled) and not image_ok) else 0
+                if converged_streak >= cfg.settle_steps or (image_ok and stalled):
                     self._move(STOP)
                     out.status = NavStatus.ARRIVED
                     out.message = f"arrived at node {goal}"
@@ -305,8 +314,10 @@ class Navigator:
             # -- lost or stuck: re-localize and re-plan
             lost = lost + 1 if s.status is ServoStatus.LOST else 0
             stuck = self._time - since_switch > cfg.subgoal_timeout_s and not final
-            if lost >= cfg.lost_after_steps or stuck:
-                why = "lost sight of" if lost >= cfg.lost_after_steps else "could not reach"
+            fooled = false_arrival >= cfg.lost_after_steps
+            if lost >= cfg.lost_after_steps or stuck or fooled:
+                why = ("lost sight of" if lost >= cfg.lost_after_steps else
+                       "was fooled by a look-alike of" if fooled else "could not reach")
                 prev = nodes[i - 1] if i > 0 else None
                 if prev is not None:
                     self.planner.penalize(prev, sub)
@@ -317,15 +328,38 @@ class Navigator:
                 self._hold()
                 yield from self._localize()
                 new = self._plan(self._here, goal)
+                budget_s = max(budget_s, self._time + 60.0 + cfg.time_budget_s_per_hop * max(1, new.hops))
                 nodes, i = list(new.nodes), 0
                 out.route = tuple(nodes)
-                lost = converged_streak = 0
+                lost = converged_streak = false_arrival = 0
                 history = []
                 since_switch = self._time
                 self._target(nodes, i)
                 yield NavEvent(EventKind.REPLANNED, self._time, f"new route {nodes}", subgoal=nodes[0], route=tuple(nodes))
                 continue
             self._move(s.command)
+
+    def _image_agrees(self, q: Query, v: Verification, node: int) -> bool:
+        """The current image shows the node's keyframe view: verified matches barely moved
+        (``arrive_image_error``) and the whole-image descriptor is close (``arrive_descriptor_fraction``
+        of the distance between the keyframe and its neighbours)."""
+        cfg = self.config
+        if v.inliers < self.map.config.match.min_inliers or v.flow_px >= cfg.arrive_image_error * self.map.working_size[0]:
+            return False
+        goal_desc = self.map.nodes[node].descriptor
+        if goal_desc is None or q.descriptor.size != goal_desc.size:
+            return True  # no whole-image descriptor to compare
+        return float(sad(q.descriptor, goal_desc[None])[0]) < cfg.arrive_descriptor_fraction * self._neighbour_distance(node)
+
+    def _neighbour_distance(self, node: int) -> float:
+        """Median thumbnail distance between a node's keyframe and its neighbours' (cached)."""
+        if node not in self._neighbour_sad:
+            own = self.map.nodes[node].descriptor
+            others = [self.map.nodes[n].descriptor for n in self.map.neighbours(node)]
+            others = [d for d in others if d is not None and d.size == own.size]
+            # patch-normalised thumbnails of unrelated images differ by ~2/sqrt(pi) = 1.13 (mean |N(0,2)|)
+            self._neighbour_sad[node] = float(np.median(sad(own, np.stack(others)))) if others else 2 / math.sqrt(math.pi)
+        return self._neighbour_sad[node]
 
     def _stalled_at_goal(self, history: list[tuple[float, float, float]]) -> bool:
         """Aligned, close, and no progress over the settle window (see NavigateConfig.settle_*)."""

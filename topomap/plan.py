@@ -108,7 +108,7 @@ class Planner:
         self._graph.add_nodes_from(sorted(tmap.nodes))
         for e in sorted(tmap.edges.values(), key=lambda e: e.key):
             self._graph.add_edge(e.a, e.b, cost=edge_cost(e, tmap.config, config, tmap.working_size),
-                                 sequential=e.kind is EdgeKind.SEQUENTIAL)
+                                 directed=e.kind is EdgeKind.SEQUENTIAL)
         self._prefer_taught_chains()
         self._penalty: dict[tuple[int, int], float] = {}  # (a, b), a < b -> product of failure factors
 
@@ -130,6 +130,7 @@ class Planner:
                 taught = sum(self._graph.edges[i, i + 1]["cost"] for i in chain)
                 data = self._graph.edges[e.a, e.b]
                 data["cost"] = max(data["cost"], 1.01 * taught)
+                data["directed"] = True  # a local shortcut has the taught direction too
 
     # ------------------------------------------------------------------ costs
     def base_cost(self, a: int, b: int) -> float:
@@ -189,7 +190,7 @@ class Planner:
     def _weight(self, a: int, b: int, data: dict) -> float | None:
         """Cost of travelling a -> b (networkx passes the node being expanded first)."""
         w = data["cost"] * self._penalty.get((min(a, b), max(a, b)), 1.0)
-        if data.get("sequential") and b < a:  # node ids follow the taught order within a sequence
+        if data.get("directed") and b < a:  # node ids follow the taught order within a sequence
             w *= self.config.reverse_factor
         # networkx hides an edge whose weight is None: a closed (infinitely penalised) edge
         return None if math.isinf(w) else w

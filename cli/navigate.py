@@ -1,0 +1,154 @@
+"""``topomap navigate``: drive a simulated robot to a map node from images alone (or run the demo)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from topomap.errors import DatasetError
+from topomap_cli.app import app, console, err_console, fail, print_json
+
+_RESULT_KEYS = ("success", "final_position_error_m", "final_heading_error_deg", "path_length_m",
+                "teach_path_length_m", "duration_s", "subgoals_reached", "replans", "status")
+
+
+def _start_pose(text: str) -> tuple[float, float, float]:
+    try:
+        x, z, th = (float(v) for v in text.split(","))
+    except ValueError:
+        fail(f"--start-pose {text!r} must be x,z,theta (metres, metres, radians), e.g. 12.0,8.0,0.0")
+    if not all(math.isfinite(v) for v in (x, z, th)):
+        fail(f"--start-pose {text!r} must hold finite numbers")
+    return x, z, th
+
+
+def _printer(quiet: bool):
+    from topomap.navigate import EventKind
+
+    def show(ev) -> None:
+        if quiet or ev.kind is EventKind.STEP:
+            return
+        style = {"arrived": "green", "failed": "red", "timeout": "red", "lost": "yellow"}.get(ev.kind.value, "dim")
+        err_console.print(f"[{style}]{ev.time_s:7.1f} s  {ev.kind.value:<10}[/] {ev.message}")
+
+    return show
+
+
+def _report(data: dict, as_json: bool, files: dict | None = None) -> None:
+    if as_json:
+        print_json(data)
+    else:
+        ok = data["success"]
+        console.print(
+            f"[{'green' if ok else 'red'}]{'arrived' if ok else 'did not arrive'}[/] ({data['status']}): "
+            f"final error {data['final_position_error_m']:.3f} m, {data['final_heading_error_deg']:.1f} deg; "
+            f"drove {data['path_length_m']:.1f} m (teach route {data['teach_path_length_m']:.1f} m) in "
+            f"{data['duration_s']:.0f} s; {data['subgoals_reached']} subgoals, {data['replans']} re-plans",
+            highlight=False,
+        )
+        for name, path in (files or {}).items():
+            console.print(f"  {name:<11} {path}", highlight=False)
+    if not data["success"]:
+        raise typer.Exit(1)
+
+
+@app.command()
+def navigate(
+    map_path: Optional[Path] = typer.Argument(None, metavar="[MAP]", help="Map built from a simulator teach run. Without it: the built-in demo."),
+    goal: Optional[int] = typer.Option(None, "--goal", help="Goal node id."),
+    start_node: Optional[int] = typer.Option(None, "--start-node", help="Start at this node's keyframe pose (and tell the navigator)."),
+    start_pose: Optional[str] = typer.Option(None, "--start-pose", help="Start pose x,z,theta [m, m, rad]; the navigator localizes itself."),
+    world: Optional[str] = typer.Option(None, "--world", help="World: 'default', a seed or a world JSON [default: world.json of the map's teach run]."),
+    poses: Optional[Path] = typer.Option(None, "--poses", help="Teach poses CSV, for scoring only [default: poses.csv of the map's teach run]."),
+    vehicle: str = typer.Option("unicycle", "--vehicle", help="unicycle or omni."),
+    disturbance: Optional[str] = typer.Option(None, "--disturbance", help="Unknown input disturbance: none, bias, sinusoidal, slip, noisy, harsh, and/or key=value,... [default: none; demo: bias]."),
+    servo: str = typer.Option("default", "--servo", help="Servo preset: default, uncompensated, aicardi, floor."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the disturbance's random parts."),
+    record: Optional[Path] = typer.Option(None, "--record", help="Folder for trajectory.png, camera.gif, events.jsonl, result.json."),
+    out: Path = typer.Option(Path("topomap-demo"), "--out", help="Demo output folder (no MAP)."),
+    as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
+) -> None:
+    """Navigate to a node from images alone, in simulation; without MAP, run the built-in demo."""
+    from topomap.config import servo_preset
+    from topomap.motion import vehicle_kind
+    from topomap.sim.vehicle import parse_disturbance
+
+    vehicle_kind(vehicle)
+    servo_cfg = servo_preset(servo)
+    if start_node is not None and start_pose is not None:
+        fail("give either --start-node or --start-pose, not both")
+    if map_path is None:
+        if any(v is not None for v in (goal, start_node, start_pose, world, poses, record)):
+            fail("--goal, --start-*, --world, --poses and --record need a MAP (without MAP the demo chooses them)")
+        _demo(out, vehicle, disturbance, seed, as_json)
+        return
+    if goal is None:
+        fail("give the goal node with --goal N (see `topomap info MAP` for the node ids)")
+    parse_disturbance(disturbance or "none")
+
+    from topomap.groundtruth import read_poses
+    from topomap.sim.demo import EpisodeRecorder, plot_episode
+    from topomap.sim.episode import goal_pose, run_episode
+    from topomap.sim.world import resolve_world
+    from topomap.store import load_map
+
+    m = load_map(map_path)
+    m.node(goal)
+    if start_node is not None:
+        m.node(start_node)
+    teach_dir = Path(m.sequences[0]["source"]) if m.sequences else None
+    if world is None:
+        if teach_dir is None or not (teach_dir / "world.json").is_file():
+            raise DatasetError(f"no world.json beside the map's images ({teach_dir}); give --world SEED|FILE")
+        world = str(teach_dir / "world.json")
+    if poses is None:
+        if teach_dir is None or not (teach_dir / "poses.csv").is_file():
+            raise DatasetError(f"no poses.csv beside the map's images ({teach_dir}); give --poses CSV")
+        poses = teach_dir / "poses.csv"
+    w = resolve_world(world)
+    pose_table = read_poses(poses)
+    goal_pose(m, pose_table, goal)  # the scorer needs the goal's teach pose
+    if record is not None:
+        if record.exists() and not record.is_dir():
+            fail(f"--record {record} exists and is not a folder")
+        record.mkdir(parents=True, exist_ok=True)
+    pose = _start_pose(start_pose) if start_pose is not None else None
+    if pose is not None and not w.is_free(pose[0], pose[1]):
+        fail(f"--start-pose {start_pose} is not on the world's free floor")
+    rec = EpisodeRecorder(m) if record is not None else None
+    show = _printer(as_json)
+
+    def listen(ev) -> None:
+        show(ev)
+        if rec is not None:
+            rec(ev)
+
+    result = run_episode(m, w, goal, pose_table, start_pose=pose, start_node=start_node, vehicle=vehicle,
+                         disturbance=disturbance or "none", seed=seed, servo_config=servo_cfg, on_event=listen)
+    data = {k: v for k, v in result.to_dict().items() if k in _RESULT_KEYS or k in ("message", "goal", "start_node")}
+    files = {}
+    if record is not None:
+        files["trajectory"] = plot_episode(w, m, pose_table, result, record / "trajectory.png")
+        anim = rec.write_animation(record / "camera.gif")
+        if anim is not None:
+            files["animation"] = anim
+        files["events"] = rec.write_events(record / "events.jsonl")
+        (record / "result.json").write_text(json.dumps(data, indent=2) + "\n")
+        files["result"] = record / "result.json"
+    _report(data, as_json, files)
+
+
+def _demo(out: Path, vehicle: str, disturbance: str | None, seed: int, as_json: bool) -> None:
+    from topomap.sim.demo import DEMO_DISTURBANCE, run_demo
+
+    if out.exists() and not out.is_dir():
+        fail(f"--out {out} exists and is not a folder")
+    show = _printer(as_json)
+    demo = run_demo(out, vehicle=vehicle, disturbance=disturbance or DEMO_DISTURBANCE, seed=seed,
+                    on_stage=(None if as_json else lambda s: err_console.print(f"[bold]{s}[/]")), on_event=show)
+    data = {k: v for k, v in demo.result.to_dict().items() if k in _RESULT_KEYS or k in ("message", "goal", "start_node")}
+    _report(data, as_json, {k: str(v) for k, v in demo.files.items()})
