@@ -47,7 +47,8 @@ def _report(data: dict, as_json: bool, files: dict | None = None) -> None:
             f"[{'green' if ok else 'red'}]{'arrived' if ok else 'did not arrive'}[/] ({data['status']}): "
             f"final error {data['final_position_error_m']:.3f} m, {data['final_heading_error_deg']:.1f} deg; "
             f"drove {data['path_length_m']:.1f} m (teach route {data['teach_path_length_m']:.1f} m) in "
-            f"{data['duration_s']:.0f} s; {data['subgoals_reached']} subgoals, {data['replans']} re-plans",
+            f"{data['duration_s']:.0f} s; {data['subgoals_reached']} subgoals, {data['replans']} re-plans"
+            + ("" if ok or not data.get("message") else f" — {data['message']}"),
             highlight=False,
         )
         for name, path in (files or {}).items():
@@ -99,7 +100,9 @@ def navigate(
     m = load_map(map_path)
     m.node(goal)
     if start_node is not None:
-        m.node(start_node)
+        from topomap.plan import Planner
+
+        Planner(m).route(start_node, goal)  # no path between them: a clear error before the robot moves
     teach_dir = Path(m.sequences[0]["source"]) if m.sequences else None
     if world is None:
         if teach_dir is None or not (teach_dir / "world.json").is_file():

@@ -420,9 +420,11 @@ class NavigateConfig:
     switch_min_inliers: int = 30  # the next node must verify with at least this many inliers
     settle_steps: int = 5  # the final goal counts as reached after this many converged steps in a row,
     # or when the servo stops making progress close to it: a docked unicycle cannot remove a small
-    # lateral offset by turning in place. Then: heading within the servo's tolerance, the estimated
-    # distance changed less than settle_progress_m over settle_window_s, and is below settle_max_m.
+    # lateral offset by turning in place. Then, over settle_window_s (medians, robust to jitter):
+    # |heading error| below settle_heading_deg, estimated distance below settle_max_m and changing
+    # less than settle_progress_m between the window's halves.
     settle_window_s: float = 3.0
+    settle_heading_deg: float = 2.5
     # ... and in both cases the image agrees: the verified matches between the current image and the
     # goal keyframe moved less than this fraction of the image width (median). The pose alone cannot
     # certify arrival: facing a single wall (a plane) the planar relative pose is ambiguous.
@@ -441,7 +443,7 @@ class NavigateConfig:
     time_budget_s_per_hop: float = 30.0  # the whole navigation may last 60 s + this per route hop [s]
 
     def __post_init__(self) -> None:
-        for name in ("control_period_s", "switch_distance_m", "switch_heading_deg", "subgoal_timeout_s", "scan_turn_rps", "scan_every_s",
+        for name in ("control_period_s", "switch_distance_m", "switch_heading_deg", "settle_heading_deg", "subgoal_timeout_s", "scan_turn_rps", "scan_every_s",
                      "time_budget_s_per_hop"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"navigate {name} must be positive")

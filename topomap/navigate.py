@@ -362,18 +362,23 @@ class Navigator:
         return self._neighbour_sad[node]
 
     def _stalled_at_goal(self, history: list[tuple[float, float, float]]) -> bool:
-        """Aligned, close, and no progress over the settle window (see NavigateConfig.settle_*)."""
+        """Aligned, close, and no progress over the settle window (see NavigateConfig.settle_*).
+
+        Medians, not extremes: under noisy disturbances the per-image estimates jitter by a few
+        centimetres and degrees around a pose the servo can no longer improve."""
         cfg = self.config
         now = history[-1][0]
         if now - history[0][0] < cfg.settle_window_s:
             return False
-        window = [h for h in history if h[0] >= now - cfg.settle_window_s]
-        dist = np.array([h[1] for h in window])
-        head = np.array([h[2] for h in window])
-        if not (np.isfinite(dist).all() and np.isfinite(head).all()):
+        window = np.array([h[1:] for h in history if h[0] >= now - cfg.settle_window_s])
+        ok = np.isfinite(window).all(axis=1)
+        if ok.mean() < 0.8:
             return False
-        tol = math.radians(self.servo.config.heading_tol_deg)
-        return bool(np.abs(head).max() < tol and dist.max() < cfg.settle_max_m and np.ptp(dist) < cfg.settle_progress_m)
+        dist, head = window[ok, 0], np.abs(window[ok, 1])
+        half = len(dist) // 2
+        progress = abs(float(np.median(dist[:half])) - float(np.median(dist[half:]))) if half else math.inf
+        return bool(np.median(head) < math.radians(cfg.settle_heading_deg) and np.median(dist) < cfg.settle_max_m
+                    and progress < cfg.settle_progress_m)
 
     def _switch_reason(self, q: Query, s: ServoOutput, nxt: int, v: Verification) -> str:
         """Why the current intermediate subgoal counts as reached, or ``""``."""

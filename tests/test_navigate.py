@@ -1,0 +1,178 @@
+"""topomap.navigate and `topomap navigate`: the built-in demo arrives, a kidnapped start arrives,
+unknown / unreachable goals and maps without a path are clear errors.
+
+The demo (teach the default world's loop, build the map, navigate to the farthest node) runs once
+per session, through the CLI exactly as the README's first command does; the other tests reuse its
+map and teach run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import shutil
+
+import pytest
+
+from topomap.groundtruth import read_poses
+from topomap.navigate import EventKind, Navigator, NavStatus
+from topomap.sim.episode import SUCCESS_HEADING_DEG, SUCCESS_POSITION_M, goal_pose, run_episode
+from topomap.sim.simulator import Simulator
+from topomap.sim.world import load_world
+from topomap.store import load_map, save_map
+
+#: The demo's final position error must stay below this [m] (success itself allows 0.25 m).
+DEMO_ERROR_BOUND_M = 0.15
+
+
+@pytest.fixture(scope="session")
+def demo(tmp_path_factory):
+    """(output folder, CLI result, parsed JSON) of `topomap navigate --json` without a map."""
+    from typer.testing import CliRunner
+
+    from topomap_cli.main import app
+
+    out = tmp_path_factory.mktemp("demo") / "topomap-demo"
+    res = CliRunner().invoke(app, ["navigate", "--out", str(out), "--json"])
+    data = json.loads(res.stdout) if res.stdout.strip().startswith("{") else None
+    return out, res, data
+
+
+@pytest.fixture(scope="session")
+def taught(demo):
+    """(map, world, poses, map path) of the demo's teach run."""
+    out, _, _ = demo
+    path = out / "map.topomap"
+    if not path.is_file():
+        pytest.fail("the demo did not write its map")
+    return load_map(path), load_world(out / "teach" / "world.json"), read_poses(out / "teach" / "poses.csv"), path
+
+
+def test_demo_reaches_its_goal(demo):
+    out, res, data = demo
+    assert res.exit_code == 0, res.output
+    assert data is not None, res.stdout
+    for key in ("success", "final_position_error_m", "final_heading_error_deg", "path_length_m", "teach_path_length_m",
+                "duration_s", "subgoals_reached", "replans", "status"):
+        assert key in data
+    assert data["success"] is True and data["status"] == "arrived"
+    assert data["final_position_error_m"] <= DEMO_ERROR_BOUND_M
+    assert data["final_heading_error_deg"] <= SUCCESS_HEADING_DEG
+    assert data["subgoals_reached"] >= 10 and data["path_length_m"] > 10.0
+    # the driven path is about the taught route's length: no wandering
+    assert data["path_length_m"] < 1.5 * data["teach_path_length_m"]
+    for name in ("trajectory.png", "camera.gif", "map.topomap", "result.json", "events.jsonl"):
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    assert json.loads((out / "result.json").read_text())["success"] is True
+
+
+def test_demo_goal_is_the_farthest_node(taught, demo):
+    from topomap.sim.demo import farthest_node
+
+    m, _, _, _ = taught
+    _, _, data = demo
+    assert data["goal"] == farthest_node(m, min(m.nodes))
+
+
+def test_kidnapped_start_arrives(taught):
+    """Put down somewhere along the loop without being told where: localize globally, then go."""
+    m, world, poses, _ = taught
+    ids = sorted(m.nodes)
+    here = ids[len(ids) // 3]
+    x, z, th = goal_pose(m, poses, here)
+    start = (x - 0.1 * math.sin(th), z + 0.1 * math.cos(th), th - math.radians(8))
+    goal = ids[len(ids) // 3 + 8]
+    events = []
+    r = run_episode(m, world, goal, poses, start_pose=start, vehicle="omni", disturbance="bias", seed=3,
+                    on_event=lambda ev: events.append(ev) if ev.kind is not EventKind.STEP else None)
+    assert events[0].kind is EventKind.LOCALIZED and abs(events[0].subgoal - here) <= 3, events[0].message
+    assert r.success, (r.status, r.message, r.final_position_error_m)
+    assert r.final_position_error_m < SUCCESS_POSITION_M
+
+
+def test_navigator_sees_images_only(taught):
+    """The navigator is handed the robot (images, intrinsics, commands) — never the simulator."""
+    m, world, _, _ = taught
+    with Simulator(world) as sim:
+        nav = Navigator(m, sim.robot, "unicycle")
+        assert nav.robot is sim.robot and not hasattr(sim.robot, "ground_truth")
+        assert not any(isinstance(v, Simulator) for v in vars(nav).values())
+
+
+# ----------------------------------------------------------------------------- errors
+@pytest.fixture(scope="session")
+def split_map(taught, tmp_path_factory):
+    """The demo map with a stretch of nodes cut off into a second component (teach run beside it)."""
+    m, _, _, path = taught
+    folder = tmp_path_factory.mktemp("split")
+    shutil.copytree(path.parent / "teach", folder / "teach")
+    ids = sorted(m.nodes)
+    island = set(ids[len(ids) // 2: len(ids) // 2 + 6])
+    cut = dataclasses.replace(m, edges={k: e for k, e in m.edges.items() if (e.a in island) == (e.b in island)})
+    assert len(cut.components()) == 2
+    cut.sequences = [{**s, "source": str(folder / "teach")} for s in m.sequences]
+    return save_map(cut, folder / "split.topomap"), min(island)
+
+
+def test_unknown_goal_is_a_clear_error(runner, cli_app, taught):
+    _, _, _, path = taught
+    res = runner.invoke(cli_app, ["navigate", str(path), "--goal", "9999"])
+    assert res.exit_code == 1 and "node 9999 is not in this map" in res.output
+    assert "Traceback" not in res.output and len(res.output.strip().splitlines()) == 1
+    res = runner.invoke(cli_app, ["navigate", str(path), "--goal", "3", "--start-node", "-4"])
+    assert res.exit_code == 1 and "node -4 is not in this map" in res.output
+
+
+def test_no_path_between_start_and_goal_is_a_clear_error(runner, cli_app, split_map):
+    path, island_node = split_map
+    res = runner.invoke(cli_app, ["navigate", str(path), "--goal", str(island_node), "--start-node", "0"])
+    assert res.exit_code == 1, res.output
+    assert f"no route from node 0 to node {island_node}" in res.output
+    assert "Traceback" not in res.output and len(res.output.strip().splitlines()) == 1
+
+
+def test_unreachable_goal_fails_with_a_message(runner, cli_app, split_map):
+    """The robot localizes itself (no --start-node), then finds the goal out of reach: exit 1, one reason."""
+    path, island_node = split_map
+    m = load_map(path)
+    res = runner.invoke(cli_app, ["navigate", str(path), "--goal", str(island_node), "--start-pose",
+                                  ",".join(str(v) for v in _pose_of(m, path, 0)), "--json"])
+    assert res.exit_code == 1, res.output
+    data = json.loads(res.stdout)
+    assert data["success"] is False and data["status"] == NavStatus.FAILED.value
+    assert f"to node {island_node}" in data["message"] and "different components" in data["message"]
+
+
+def _pose_of(m, path, node):
+    poses = read_poses(path.parent / "teach" / "poses.csv")
+    return tuple(float(v) for v in goal_pose(m, poses, node))
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--goal", "3", "--start-node", "0", "--start-pose", "1,2,0"], "either --start-node or --start-pose"),
+    (["--goal", "3", "--start-pose", "1,2"], "must be x,z,theta"),
+    (["--goal", "3", "--vehicle", "tank"], "unknown vehicle 'tank'"),
+    (["--goal", "3", "--disturbance", "gale"], "gale"),
+    (["--goal", "3", "--servo", "magic"], "magic"),
+    ([], "--goal N"),
+])
+def test_bad_navigate_options_are_one_line(runner, cli_app, taught, args, message):
+    _, _, _, path = taught
+    res = runner.invoke(cli_app, ["navigate", str(path), *args])
+    assert res.exit_code != 0 and message in res.output, res.output
+    assert "Traceback" not in res.output
+
+
+def test_missing_or_foreign_map(runner, cli_app, tmp_path):
+    res = runner.invoke(cli_app, ["navigate", str(tmp_path / "nope.topomap"), "--goal", "1"])
+    assert res.exit_code == 1 and "does not exist" in res.output
+    bad = tmp_path / "foreign.topomap"
+    bad.write_text("hello")
+    res = runner.invoke(cli_app, ["navigate", str(bad), "--goal", "1"])
+    assert res.exit_code == 1 and "not a topomap map" in res.output
+
+
+def test_demo_options_need_no_map(runner, cli_app, tmp_path):
+    res = runner.invoke(cli_app, ["navigate", "--goal", "3"])
+    assert res.exit_code == 1 and "need a MAP" in res.output
