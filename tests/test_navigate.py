@@ -141,7 +141,7 @@ def test_unreachable_goal_fails_with_a_message(runner, cli_app, split_map):
     assert res.exit_code == 1, res.output
     data = json.loads(res.stdout)
     assert data["success"] is False and data["status"] == NavStatus.FAILED.value
-    assert f"to node {island_node}" in data["message"] and "different components" in data["message"]
+    assert f"to node {island_node}" in data["message"] and "different parts of the map" in data["message"]
 
 
 def _pose_of(m, path, node):

@@ -430,11 +430,12 @@ class NavigateConfig:
     # certify arrival: facing a single wall (a plane) the planar relative pose is ambiguous.
     arrive_image_error: float = 0.02
     # ... and the whole image agrees: its thumbnail descriptor is closer to the goal's than this
-    # fraction of the goal's distance to its neighbouring keyframes. Look-alike textures elsewhere can
-    # match part of the view perfectly; the rest of the image then disagrees.
+    # fraction of the goal's distance to its neighbouring keyframes, or (where neighbours look alike)
+    # closer than every keyframe more than two hops away. Look-alike textures elsewhere can match part
+    # of the view perfectly; the rest of the image then disagrees.
     arrive_descriptor_fraction: float = 0.5
     settle_progress_m: float = 0.01
-    settle_max_m: float = 0.15
+    settle_max_m: float = 0.08
     lost_after_steps: int = 15  # steps without usable geometry before re-localizing
     subgoal_timeout_s: float = 40.0  # a subgoal not reached in this time marks its edge as failed
     max_replans: int = 8

@@ -39,6 +39,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Protocol
 
+import networkx as nx
 import numpy as np
 
 from topomap.camera import CameraIntrinsics
@@ -169,6 +170,7 @@ class Navigator:
         self._last_command: Command | None = None
         self._estimate = None  # the servo's latest disturbance estimate
         self._neighbour_sad: dict[int, float] = {}
+        self._away: dict[int, np.ndarray | None] = {}
 
     # ------------------------------------------------------------------ robot I/O
     def _look(self) -> tuple[np.ndarray, Query]:
@@ -349,7 +351,23 @@ class Navigator:
         goal_desc = self.map.nodes[node].descriptor
         if goal_desc is None or q.descriptor.size != goal_desc.size:
             return True  # no whole-image descriptor to compare
-        return float(sad(q.descriptor, goal_desc[None])[0]) < cfg.arrive_descriptor_fraction * self._neighbour_distance(node)
+        d_goal = float(sad(q.descriptor, goal_desc[None])[0])
+        if d_goal < cfg.arrive_descriptor_fraction * self._neighbour_distance(node):
+            return True
+        # where neighbouring keyframes look much alike, the bound above is tight: then it is enough
+        # that no place away from the goal (beyond two hops) looks more like the current image
+        others = self._away_descriptors(node)
+        return others is None or d_goal < float(sad(q.descriptor, others).min())
+
+    def _away_descriptors(self, node: int) -> np.ndarray | None:
+        """Thumbnail descriptors of the nodes more than two hops from ``node`` (cached), or None."""
+        if node not in self._away:
+            near = set(nx.single_source_shortest_path_length(self.map.graph, node, cutoff=2))
+            own = self.map.nodes[node].descriptor
+            rows = [n.descriptor for i, n in self.map.nodes.items()
+                    if i not in near and n.descriptor is not None and n.descriptor.size == own.size]
+            self._away[node] = np.stack(rows) if rows else None
+        return self._away[node]
 
     def _neighbour_distance(self, node: int) -> float:
         """Median thumbnail distance between a node's keyframe and its neighbours' (cached)."""
