@@ -32,3 +32,21 @@ def cli_app():
     from topomap_cli.main import app
 
     return app
+
+
+def assert_error(result, *fragments: str, alone: bool = True) -> str:
+    """Exit code 1 through SystemExit, no traceback, and exactly one line starting with "Error:"
+    (the last line on stderr) containing every fragment; with ``alone`` it is the only output
+    (``alone=False`` allows the warnings and progress of frames that were read). Returns the line."""
+    assert result.exit_code == 1, (result.exit_code, result.output)
+    assert isinstance(result.exception, SystemExit), repr(result.exception)
+    assert "Traceback" not in result.output
+    lines = [ln for ln in result.stderr.splitlines() if ln.strip()]
+    errors = [ln for ln in result.output.splitlines() if ln.startswith("Error:")]
+    assert len(errors) == 1 and lines and lines[-1] == errors[0], result.output
+    if alone:
+        assert len(lines) == 1, result.output
+    for f in fragments:
+        assert f in errors[0], (f, errors[0])
+    assert result.stdout == ""
+    return errors[0]

@@ -12,7 +12,7 @@ import cv2
 import networkx as nx
 import numpy as np
 import pytest
-from conftest import dataset
+from conftest import assert_error, dataset
 from map_synth import FRAME_SIZE, out_and_back_x, scene, sequence, window, write_out_and_back, write_sequence, write_video
 from typer.testing import CliRunner
 
@@ -22,24 +22,6 @@ from topomap.store import SCHEMA_VERSION, load_map
 
 #: Options that keep synthetic CLI builds quick (few features: a small vocabulary).
 QUICK = ["--max-features", "300"]
-
-
-def assert_error(result, *fragments: str, alone: bool = True) -> str:
-    """Exit code 1 through SystemExit, no traceback, and exactly one line starting with "Error:"
-    (the last line on stderr) containing every fragment; with ``alone`` it is the only output
-    (``alone=False`` allows the warnings and progress of frames that were read). Returns the line."""
-    assert result.exit_code == 1, (result.exit_code, result.output)
-    assert isinstance(result.exception, SystemExit), repr(result.exception)
-    assert "Traceback" not in result.output
-    lines = [ln for ln in result.stderr.splitlines() if ln.strip()]
-    errors = [ln for ln in result.output.splitlines() if ln.startswith("Error:")]
-    assert len(errors) == 1 and lines and lines[-1] == errors[0], result.output
-    if alone:
-        assert len(lines) == 1, result.output
-    for f in fragments:
-        assert f in errors[0], (f, errors[0])
-    assert result.stdout == ""
-    return errors[0]
 
 
 def ok(result):

@@ -12,6 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import assert_error as cli_error
 from conftest import dataset
 from map_synth import FRAME_SIZE, scene, window, write_sequence, write_video
 from test_localize import corridor_map_file
@@ -23,18 +24,8 @@ QUERIES = (2, 5, 8, 11)  # second-pass views used as queries
 
 
 def assert_error(result, *fragments: str) -> str:
-    """Exit 1 through SystemExit, no traceback, one line "Error: ..." on stderr holding every
-    fragment (progress/warning lines before it allowed), nothing on stdout."""
-    assert result.exit_code == 1, (result.exit_code, result.output)
-    assert isinstance(result.exception, SystemExit), repr(result.exception)
-    assert "Traceback" not in result.output
-    errors = [ln for ln in result.output.splitlines() if ln.startswith("Error:")]
-    lines = [ln for ln in result.stderr.splitlines() if ln.strip()]
-    assert len(errors) == 1 and lines[-1] == errors[0], result.output
-    for f in fragments:
-        assert f in errors[0], (f, errors[0])
-    assert result.stdout == ""
-    return errors[0]
+    """One "Error: ..." line, exit 1, no traceback (progress and warning lines before it allowed)."""
+    return cli_error(result, *fragments, alone=False)
 
 
 def ok_json(result):
