@@ -23,7 +23,7 @@ BENCHMARKS = {
     "servo": ([], ["--trials", "100"]),
     "render": ([], []),
     "observability": ([], []),
-    "navigate": (["--episodes", "40", "--worlds", "0,1", "--max-hops", "12"],
+    "navigate": (["--episodes", "40", "--worlds", "0,1"],
                  ["--episodes", "8", "--worlds", "0,1", "--max-hops", "10"]),
 }
 
