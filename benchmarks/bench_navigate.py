@@ -203,9 +203,12 @@ def main(argv: list[str] | None = None) -> int:
         maps = list(pool.map(prepare_world, seeds, [cache] * len(seeds)))
         print(f"worlds {seeds}: maps ready in {time.perf_counter() - t0:.0f} s ({cache})", flush=True)
         per = [args.episodes // len(seeds) + (i < args.episodes % len(seeds)) for i in range(len(seeds))]
-        for seed, path, n in zip(seeds, maps, per):
-            for ep in draw_episodes(path, seed, n, rng, args.start_offset, args.max_hops, 1000 * seed):
-                jobs += [(str(path), ep, method, args.disturbance, args.budget_per_hop) for method in methods]
+        drawn = [draw_episodes(path, seed, n, rng, args.start_offset, args.max_hops, 1000 * seed)
+                 for seed, path, n in zip(seeds, maps, per)]
+        for k in range(max(per)):  # worlds interleaved: a partial run still covers every world
+            for path, eps in zip(maps, drawn):
+                if k < len(eps):
+                    jobs += [(str(path), eps[k], method, args.disturbance, args.budget_per_hop) for method in methods]
         rows = []
         for row in pool.map(run_one, jobs):
             rows.append(row)
