@@ -11,14 +11,11 @@ Run: ``python benchmarks/bench_observability.py`` (about a minute on 2 cores).
 
 from __future__ import annotations
 
-import random
 import sys
 import time
 from collections import defaultdict
 
-import sympy as sp
-
-from topomap.observability import TABLE_CONFIGURATIONS, analyze, float_rank, vehicle_landmark_system
+from topomap.observability import TABLE_CONFIGURATIONS, analyze, float_rank, symbolic_rank, vehicle_landmark_system
 
 
 def cells(orders: int = 4):
@@ -28,37 +25,6 @@ def cells(orders: int = 4):
             for reading in ("analytic", "polynomial"):
                 for k in range(orders):
                     yield vehicle, name, (m, t, h), "unknown", reading, k
-
-
-def symbolic_rank(system, depth: int, seed: int = 1) -> int:
-    """Textbook route: iterated symbolic Lie derivatives (pruned), exact rank over Q at a rational point."""
-    rnd = random.Random(seed)
-    theta = system.angles[0]
-    t = sp.Rational(rnd.randint(1, 50), rnd.randint(51, 100))
-    c, s = (1 - t**2) / (1 + t**2), 2 * t / (1 + t**2)
-    point = {v: sp.Rational(rnd.randint(-50, 50), rnd.randint(1, 20)) for v in (*system.states, *system.params) if v != theta}
-    fields = [sp.Matrix(g) for g in system.known_fields]
-    if any(e != 0 for e in system.drift):
-        fields.insert(0, sp.Matrix(system.drift))
-
-    def row(fn):
-        return [sp.diff(fn, v).subs({sp.cos(theta): c, sp.sin(theta): s}).subs(point) for v in system.states]
-
-    M = sp.Matrix([row(h) for h in system.outputs])
-    rank, level = M.rank(), list(system.outputs)
-    for _ in range(depth):
-        new = []
-        for fn in level:
-            for g in fields:
-                L = sum((sp.diff(fn, v) * g[i] for i, v in enumerate(system.states)), sp.Integer(0))
-                M2 = M.col_join(sp.Matrix([row(L)]))
-                if M2.rank() > rank:
-                    M, rank = M2, rank + 1
-                    new.append(L)
-        if not new:
-            break
-        level = new
-    return rank
 
 
 def main() -> int:

@@ -19,6 +19,7 @@ from topomap.observability.analysis import (
     analyze,
     default_cache_dir,
     float_rank,
+    symbolic_rank,
     observability_table,
 )
 from topomap.observability.observer import (

@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import random
 import time
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -43,6 +44,7 @@ __all__ = [
     "analyze",
     "codistribution_rows",
     "float_rank",
+    "symbolic_rank",
     "TABLE_CONFIGURATIONS",
     "TableRow",
     "observability_table",
@@ -320,6 +322,38 @@ def float_rank(system: System, *, seed: int = 0, rtol: float | None = None) -> i
     if M.size == 0:
         return 0
     return int(np.linalg.matrix_rank(M, rtol=rtol) if rtol is not None else np.linalg.matrix_rank(M))
+
+
+def symbolic_rank(system, depth: int, seed: int = 1) -> int:
+    """Baseline and independent check: the textbook route — iterated symbolic Lie derivatives (sympy,
+    pruned to the ones that raise the rank), exact rank over Q at one random rational point."""
+    rnd = random.Random(seed)
+    theta = system.angles[0]
+    t = sp.Rational(rnd.randint(1, 50), rnd.randint(51, 100))
+    c, s = (1 - t**2) / (1 + t**2), 2 * t / (1 + t**2)
+    point = {v: sp.Rational(rnd.randint(-50, 50), rnd.randint(1, 20)) for v in (*system.states, *system.params) if v != theta}
+    fields = [sp.Matrix(g) for g in system.known_fields]
+    if any(e != 0 for e in system.drift):
+        fields.insert(0, sp.Matrix(system.drift))
+
+    def row(fn):
+        return [sp.diff(fn, v).subs({sp.cos(theta): c, sp.sin(theta): s}).subs(point) for v in system.states]
+
+    M = sp.Matrix([row(h) for h in system.outputs])
+    rank, level = M.rank(), list(system.outputs)
+    for _ in range(depth):
+        new = []
+        for fn in level:
+            for g in fields:
+                L = sum((sp.diff(fn, v) * g[i] for i, v in enumerate(system.states)), sp.Integer(0))
+                M2 = M.col_join(sp.Matrix([row(L)]))
+                if M2.rank() > rank:
+                    M, rank = M2, rank + 1
+                    new.append(L)
+        if not new:
+            break
+        level = new
+    return rank
 
 
 # ----------------------------------------------------------------------------- the table
