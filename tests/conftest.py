@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sqlite3
 from pathlib import Path
 
 import pytest
@@ -50,3 +51,12 @@ def assert_error(result, *fragments: str, alone: bool = True) -> str:
         assert f in errors[0], (f, errors[0])
     assert result.stdout == ""
     return errors[0]
+
+
+def tamper(path, *statements: str) -> None:
+    """Run SQL statements on a map (or any SQLite file) behind topomap's back, and commit."""
+    con = sqlite3.connect(path)
+    for sql in statements:
+        con.execute(sql)
+    con.commit()
+    con.close()

@@ -12,7 +12,7 @@ import cv2
 import networkx as nx
 import numpy as np
 import pytest
-from conftest import assert_error, dataset
+from conftest import assert_error, dataset, tamper
 from map_synth import FRAME_SIZE, out_and_back_x, scene, sequence, window, write_out_and_back, write_sequence, write_video
 from typer.testing import CliRunner
 
@@ -249,10 +249,7 @@ def test_foreign_sqlite(runner, cli_app, tmp_path):
 
 
 def test_newer_schema(runner, cli_app, walk_copy):
-    con = sqlite3.connect(walk_copy)
-    con.execute(f"PRAGMA user_version = {SCHEMA_VERSION + 5}")
-    con.commit()
-    con.close()
+    tamper(walk_copy, f"PRAGMA user_version = {SCHEMA_VERSION + 5}")
     assert_error(runner.invoke(cli_app, ["info", str(walk_copy)]), "newer topomap", "upgrade topomap")
     for cmd in (["show", str(walk_copy), "-o", str(walk_copy.parent / "g.png")],
                 ["export", str(walk_copy), "-o", str(walk_copy.parent / "g.json")],
@@ -391,10 +388,7 @@ def test_show_and_export_output_paths(runner, cli_app, walk, tmp_path, monkeypat
 
 def test_index_rebuilds_the_index(runner, cli_app, walk, walk_copy):
     original = load_map(walk[1]).index.to_arrays()
-    con = sqlite3.connect(walk_copy)
-    con.execute("DELETE FROM array")
-    con.commit()
-    con.close()
+    tamper(walk_copy, "DELETE FROM array")
     assert info_json(runner, cli_app, walk_copy)["index"] is False
     result = ok(runner.invoke(cli_app, ["index", str(walk_copy)]))
     assert "indexed" in result.stdout

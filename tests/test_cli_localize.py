@@ -6,14 +6,13 @@ from __future__ import annotations
 
 import json
 import shutil
-import sqlite3
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 from conftest import assert_error as cli_error
-from conftest import dataset
+from conftest import dataset, tamper
 from map_synth import FRAME_SIZE, scene, window, write_sequence, write_video
 from test_localize import corridor_map_file
 from typer.testing import CliRunner
@@ -166,10 +165,7 @@ def test_empty_query_folder(runner, cli_app, data, tmp_path):
 
 def test_map_without_index(runner, cli_app, data, tmp_path):
     bare = Path(shutil.copy(data["map"], tmp_path / "bare.topomap"))
-    con = sqlite3.connect(bare)
-    con.execute("DELETE FROM array")
-    con.commit()
-    con.close()
+    tamper(bare, "DELETE FROM array")
     for extra in (["--descriptor", "fused"], ["--descriptor", "bow"]):
         assert_error(runner.invoke(cli_app, ["localize", str(bare), str(data["queries"]), *extra]),
                      "no place-recognition index", "topomap index MAP")

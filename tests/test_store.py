@@ -13,6 +13,7 @@ import cv2
 import networkx as nx
 import numpy as np
 import pytest
+from conftest import tamper
 from map_synth import FAST, write_out_and_back
 
 import topomap.store as store
@@ -161,11 +162,7 @@ def test_empty_and_foreign_files(tmp_path):
     (tmp_path / "image.png").write_bytes(png.tobytes())
     with pytest.raises(MapFormatError, match="not a topomap map file"):
         load_map(tmp_path / "image.png")
-    con = sqlite3.connect(tmp_path / "other.db")
-    con.execute("CREATE TABLE t (x)")
-    con.execute("INSERT INTO t VALUES (1)")
-    con.commit()
-    con.close()
+    tamper(tmp_path / "other.db", "CREATE TABLE t (x)", "INSERT INTO t VALUES (1)")
     with pytest.raises(MapFormatError, match="SQLite database but not a topomap map"):
         load_map(tmp_path / "other.db")
 
@@ -181,43 +178,28 @@ def test_truncated_map(copy):
 
 
 def test_newer_schema_asks_to_upgrade(copy):
-    con = sqlite3.connect(copy)
-    con.execute(f"PRAGMA user_version = {SCHEMA_VERSION + 1}")
-    con.commit()
-    con.close()
+    tamper(copy, f"PRAGMA user_version = {SCHEMA_VERSION + 1}")
     with pytest.raises(MapFormatError, match="newer topomap.*upgrade topomap"):
         load_map(copy)
-    con = sqlite3.connect(copy)
-    con.execute("PRAGMA user_version = 0")
-    con.commit()
-    con.close()
+    tamper(copy, "PRAGMA user_version = 0")
     with pytest.raises(MapFormatError, match="no schema version"):
         load_map(copy)
 
 
 def test_damaged_content(copy):
-    con = sqlite3.connect(copy)
-    con.execute("UPDATE feature SET keypoints = x'0011' WHERE node_id = 1")
-    con.commit()
-    con.close()
+    tamper(copy, "UPDATE feature SET keypoints = x'0011' WHERE node_id = 1")
     with pytest.raises(MapFormatError, match="keypoints of node 1 does not decode"):
         load_map(copy)
 
 
 def test_damaged_header(copy):
-    con = sqlite3.connect(copy)
-    con.execute("UPDATE meta SET value = '{\"fx\": ' WHERE key = 'camera'")
-    con.commit()
-    con.close()
+    tamper(copy, "UPDATE meta SET value = '{\"fx\": ' WHERE key = 'camera'")
     with pytest.raises(MapFormatError, match="header is not valid JSON"):
         load_map(copy)
 
 
 def test_wrong_format_name(copy):
-    con = sqlite3.connect(copy)
-    con.execute("UPDATE meta SET value = '\"something-else\"' WHERE key = 'format'")
-    con.commit()
-    con.close()
+    tamper(copy, "UPDATE meta SET value = '\"something-else\"' WHERE key = 'format'")
     with pytest.raises(MapFormatError, match="not a topomap map"):
         load_map(copy)
 
