@@ -158,6 +158,17 @@ def square():
     return make_map(5, [(0, 1, 200, 50.0), (1, 2, 200, 50.0), (0, 3, 150, 80.0), (3, 4, 150, 80.0), (2, 4, 150, 80.0)])
 
 
+def test_costs_from_agree_with_routes(square):
+    p = Planner(square)
+    p.penalize(1, 2)
+    costs = p.costs_from(0)
+    assert costs[0] == 0.0 and set(costs) == set(square.nodes)
+    for n in square.nodes:
+        assert costs[n] == pytest.approx(p.route(0, n).cost)
+    split = make_map(4, [(0, 1, 200, 50.0), (2, 3, 200, 50.0)])
+    assert set(Planner(split).costs_from(0)) == {0, 1}  # only what it can reach
+
+
 def test_penalize_then_replan_takes_the_alternative(square):
     p = Planner(square)
     first = p.route(0, 2)

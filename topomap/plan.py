@@ -186,6 +186,11 @@ class Planner:
         return Route(nodes=[int(n) for n in nodes], edges=edges, cost=float(cost), hops=len(edges),
                      edge_costs=[self.cost(a, b) for a, b in edges])
 
+    def costs_from(self, start: int) -> dict[int, float]:
+        """Cost of the cheapest route from ``start`` to every node it can reach (one Dijkstra)."""
+        lengths = nx.single_source_dijkstra_path_length(self._graph, self._node_id(start), weight=self._weight)
+        return {int(n): float(c) for n, c in lengths.items()}
+
     # ------------------------------------------------------------------ helpers
     def _weight(self, a: int, b: int, data: dict) -> float | None:
         """Cost of travelling a -> b (networkx passes the node being expanded first)."""

@@ -109,11 +109,11 @@ def plot_episode(world: World, tmap: TopoMap, poses: PoseTable, result: EpisodeR
 
 
 def farthest_node(tmap: TopoMap, start: int) -> int:
-    """The node with the most expensive route from ``start`` (ties: the higher id)."""
+    """The reachable node with the most expensive route from ``start`` (ties: the higher id)."""
     from topomap.plan import Planner
 
-    p = Planner(tmap)
-    costs = {n: p.route(start, n).cost for n in tmap.nodes if n != start}
+    costs = Planner(tmap).costs_from(start)
+    costs.pop(start)
     return max(costs, key=lambda n: (costs[n], n))
 
 
