@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Optional
@@ -14,6 +13,11 @@ from topomap_cli.app import app, console, err_console, fail, print_json
 
 _RESULT_KEYS = ("success", "final_position_error_m", "final_heading_error_deg", "path_length_m",
                 "teach_path_length_m", "duration_s", "subgoals_reached", "replans", "status")
+
+
+def _shown(result) -> dict:
+    """The result keys the CLI prints (and writes to result.json with --record)."""
+    return {k: v for k, v in result.to_dict().items() if k in _RESULT_KEYS or k in ("message", "goal", "start_node")}
 
 
 def _start_pose(text: str) -> tuple[float, float, float]:
@@ -92,7 +96,7 @@ def navigate(
     parse_disturbance(disturbance or "none")
 
     from topomap.groundtruth import read_poses
-    from topomap.sim.demo import EpisodeRecorder, plot_episode
+    from topomap.sim.demo import EpisodeRecorder
     from topomap.sim.episode import goal_pose, run_episode
     from topomap.sim.world import resolve_world
     from topomap.store import load_map
@@ -132,16 +136,8 @@ def navigate(
 
     result = run_episode(m, w, goal, pose_table, start_pose=pose, start_node=start_node, vehicle=vehicle,
                          disturbance=disturbance or "none", seed=seed, servo_config=servo_cfg, on_event=listen)
-    data = {k: v for k, v in result.to_dict().items() if k in _RESULT_KEYS or k in ("message", "goal", "start_node")}
-    files = {}
-    if record is not None:
-        files["trajectory"] = plot_episode(w, m, pose_table, result, record / "trajectory.png")
-        anim = rec.write_animation(record / "camera.gif")
-        if anim is not None:
-            files["animation"] = anim
-        files["events"] = rec.write_events(record / "events.jsonl")
-        (record / "result.json").write_text(json.dumps(data, indent=2) + "\n")
-        files["result"] = record / "result.json"
+    data = _shown(result)
+    files = rec.write_all(record, w, pose_table, result, data=data) if rec is not None else {}
     _report(data, as_json, files)
 
 
@@ -153,5 +149,5 @@ def _demo(out: Path, vehicle: str, disturbance: str | None, seed: int, as_json: 
     show = _printer(as_json)
     demo = run_demo(out, vehicle=vehicle, disturbance=disturbance or DEMO_DISTURBANCE, seed=seed,
                     on_stage=(None if as_json else lambda s: err_console.print(f"[bold]{s}[/]")), on_event=show)
-    data = {k: v for k, v in demo.result.to_dict().items() if k in _RESULT_KEYS or k in ("message", "goal", "start_node")}
+    data = _shown(demo.result)
     _report(data, as_json, {k: str(v) for k, v in demo.files.items()})

@@ -91,6 +91,20 @@ def test_kidnapped_start_arrives(taught):
     assert r.final_position_error_m < SUCCESS_POSITION_M
 
 
+def test_record_writes_the_episode(runner, cli_app, taught, tmp_path):
+    m, _, _, path = taught
+    ids = sorted(m.nodes)
+    start, goal = ids[50], ids[53]  # along a straight corridor (wall-facing corners: see docs/navigation.md)
+    res = runner.invoke(cli_app, ["navigate", str(path), "--goal", str(goal), "--start-node", str(start),
+                                  "--record", str(tmp_path / "run"), "--json"])
+    assert res.exit_code == 0, res.output
+    data = json.loads(res.stdout)
+    assert data["success"] is True and data["goal"] == goal and data["start_node"] == start
+    assert json.loads((tmp_path / "run" / "result.json").read_text()) == data
+    for name in ("trajectory.png", "camera.gif", "events.jsonl"):
+        assert (tmp_path / "run" / name).stat().st_size > 0, name
+
+
 def test_navigator_sees_images_only(taught):
     """The navigator is handed the robot (images, intrinsics, commands) — never the simulator."""
     m, world, _, _ = taught

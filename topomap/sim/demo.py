@@ -86,6 +86,20 @@ class EpisodeRecorder:
         path.write_text("".join(json.dumps(e) + "\n" for e in self.events))
         return path
 
+    def write_all(self, folder: str | Path, world: World, poses: PoseTable, result: EpisodeResult, *,
+                  title: str | None = None, data: dict | None = None) -> dict[str, Path]:
+        """``trajectory.png``, ``camera.gif`` (when frames were kept), ``events.jsonl`` and
+        ``result.json`` (``data``, default the whole result) in ``folder``; returns name -> path."""
+        folder = Path(folder)
+        files = {"trajectory": plot_episode(world, self.tmap, poses, result, folder / "trajectory.png", title=title)}
+        anim = self.write_animation(folder / "camera.gif")
+        if anim is not None:
+            files["animation"] = anim
+        files["events"] = self.write_events(folder / "events.jsonl")
+        files["result"] = folder / "result.json"
+        files["result"].write_text(json.dumps(result.to_dict() if data is None else data, indent=2) + "\n")
+        return files
+
 
 def plot_episode(world: World, tmap: TopoMap, poses: PoseTable, result: EpisodeResult, path: str | Path,
                  teach_route: str | None = "loop", title: str | None = None) -> Path:
@@ -173,14 +187,7 @@ def run_demo(
 
     result = run_episode(tmap, world, goal, poses, start_pose=start, vehicle=vehicle, disturbance=disturbance,
                          seed=seed, on_event=listen)
-    files = {"map": map_path}
-    files["trajectory"] = plot_episode(world, tmap, poses, result, out / "trajectory.png",
-                                       title=f"node {start_node} -> {goal}: {result.status}, "
-                                             f"{result.final_position_error_m:.3f} m / {result.final_heading_error_deg:.1f} deg")
-    anim = rec.write_animation(out / "camera.gif")
-    if anim is not None:
-        files["animation"] = anim
-    files["events"] = rec.write_events(out / "events.jsonl")
-    files["result"] = out / "result.json"
-    files["result"].write_text(json.dumps(result.to_dict(), indent=2) + "\n")
+    title = (f"node {start_node} -> {goal}: {result.status}, "
+             f"{result.final_position_error_m:.3f} m / {result.final_heading_error_deg:.1f} deg")
+    files = {"map": map_path, **rec.write_all(out, world, poses, result, title=title)}
     return DemoResult(out, map_path, result, files)
