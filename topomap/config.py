@@ -131,15 +131,29 @@ class LocalizeConfig:
     speed_change_probability: float = 0.1  # per frame, to the next faster or slower speed state
     graph_hop_probability: float = 0.05  # per frame, along any map edge (loop closures, other sequences)
     jump_probability: float = 1e-3  # spread uniformly each frame: recovery after a kidnapping
+    # "not in this map": a virtual place beside the map's states (as FAB-MAP's and RTAB-Map's).
+    # Appearance scores cannot tell it (a frame from elsewhere scores like a mapped one against
+    # the best of N nodes); geometry can: the filter's best node verifies (>= min_inliers epipolar
+    # inliers) on about half the frames of a mapped place (corridor queries: 0.52) and on none of
+    # an unmapped one's (castle, Nordland against the corridor: 0/60). Frames without the features to
+    # verify leave the split unchanged, so appearance-only maps (Nordland) never go "elsewhere".
+    elsewhere_state: bool = True
+    verified_in_map: float = 0.3  # P(best node verifies | in the map), cautious
+    verified_elsewhere: float = 0.01  # P(best node verifies | elsewhere): perceptual aliasing
+    leave_probability: float = 0.02  # per frame, from the map to elsewhere
+    enter_probability: float = 0.02  # per frame, from elsewhere back into the map
 
     def __post_init__(self) -> None:
         if self.shortlist_k < 0:
             raise ConfigError("shortlist_k must be >= 0")
         if not 0.0 <= self.min_confidence <= 1.0:
             raise ConfigError(f"min_confidence={self.min_confidence} must lie in [0, 1]")
-        for name in ("speed_change_probability", "graph_hop_probability", "jump_probability"):
+        for name in ("speed_change_probability", "graph_hop_probability", "jump_probability", "leave_probability",
+                     "enter_probability"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise ConfigError(f"{name} must lie in [0, 1)")
+        if not 0.0 < self.verified_elsewhere < self.verified_in_map < 1.0:
+            raise ConfigError("need 0 < verified_elsewhere < verified_in_map < 1")
         if self.beta <= 0 or self.speed_step_nodes <= 0 or self.max_speed_nodes < 0:
             raise ConfigError("beta and speed_step_nodes must be positive, max_speed_nodes >= 0")
 

@@ -278,7 +278,9 @@ class SequenceLocalizer:
     """Bayes filter over (node, speed) states for frames arriving in order.
 
     ``update(image)`` returns the filtered :class:`Localization`; ``reset()`` forgets the past.
-    ``belief`` is the current (N,) probability of each node (speeds summed out).
+    ``belief`` is the current (N,) probability of each node (speeds summed out); ``elsewhere`` the
+    probability that the camera is in no place of this map (a virtual place, see
+    :class:`~topomap.config.LocalizeConfig`): ``belief.sum() + elsewhere == 1``.
     """
 
     def __init__(self, localizer: Localizer):
@@ -291,19 +293,33 @@ class SequenceLocalizer:
         deg = np.asarray(localizer._adjacency.sum(axis=1)).ravel()
         self._hop = sp.diags(1.0 / np.maximum(deg, 1.0)) @ localizer._adjacency  # row-stochastic
         self._has_edges = deg > 0
-        self._state: np.ndarray | None = None  # (N, S) joint belief
+        self._state: np.ndarray | None = None  # (N, S) joint belief given that the camera is in the map
         self.belief: np.ndarray | None = None
+        self.elsewhere = 0.0
+        # appearance-only maps (thumbnail descriptor: keypoints too few to verify) cannot tell
+        self._tells_elsewhere = localizer.config.elsewhere_state and localizer.use_bow
 
     def reset(self) -> None:
         self._state = None
         self.belief = None
+        self.elsewhere = 0.0
 
-    def _predict(self) -> np.ndarray:
+    def _predict(self) -> tuple[np.ndarray, float]:
+        """Prior of the next frame: (N, S) belief over the map's states given that the camera is in
+        the map, and the probability that it is elsewhere."""
         cfg = self.loc.config
         n, k = len(self.loc.node_ids), len(self.speeds)
-        if self._state is None:
-            return np.full((n, k), 1.0 / (n * k))
-        b = self._state
+        if self._state is None:  # uniform, and the stationary split of the map <-> elsewhere chain
+            e = cfg.leave_probability / (cfg.leave_probability + cfg.enter_probability)
+            return np.full((n, k), 1.0 / (n * k)), e if self._tells_elsewhere else 0.0
+        e = self.elsewhere
+        e += cfg.leave_probability * (1.0 - e) - cfg.enter_probability * e if self._tells_elsewhere else 0.0
+        return self._move(self._state), e
+
+    def _move(self, b: np.ndarray) -> np.ndarray:
+        """The motion model applied to a map belief (N, S) of any total; returns one of total 1."""
+        cfg = self.loc.config
+        n, k = len(self.loc.node_ids), len(self.speeds)
         p_hop = np.where(self._has_edges, cfg.graph_hop_probability, 0.0)[:, None]
         on_chain = b * (1.0 - p_hop)
         moved = np.stack([m @ on_chain[:, i] for i, m in enumerate(self._moves)], axis=1)
@@ -320,18 +336,24 @@ class SequenceLocalizer:
         return self.update_query(self.loc.prepare(image))
 
     def update_query(self, q: Query) -> Localization:
-        prior = self._predict()
+        cfg = self.loc.config
+        prior, e = self._predict()
+        # appearance places the camera within the map (if it is in the map) ...
         score = self.loc.appearance(q, hub_correction=True)
         post = prior * self.loc.likelihood(score)[:, None]
         total = post.sum()
-        if not (total > 0 and np.isfinite(total)):
-            post = np.full_like(prior, 1.0 / prior.size)
-        else:
-            post /= total
-        self._state = post
-        self.belief = post.sum(axis=1)
-        best = int(np.argmax(self.belief))
-        checks = self.loc.verify_rows(q, [best])  # reported with the answer; the filter ran on appearance
+        self._state = post / total if total > 0 and np.isfinite(total) else np.full_like(prior, 1.0 / prior.size)
+        belief = self._state.sum(axis=1)
+        best = int(np.argmax(belief))
+        checks = self.loc.verify_rows(q, [best])
+        # ... and geometry tells the map from elsewhere, where keypoints can be trusted to verify
+        if self._tells_elsewhere and len(q.features) >= MIN_FEATURES_FOR_BOW and best in checks:
+            ok = checks[best].inliers >= self.loc.map.config.match.min_inliers
+            in_map = (1.0 - e) * (cfg.verified_in_map if ok else 1.0 - cfg.verified_in_map)
+            out = e * (cfg.verified_elsewhere if ok else 1.0 - cfg.verified_elsewhere)
+            e = out / (in_map + out)
+        self.elsewhere = e
+        self.belief = belief * (1.0 - e)
         return self.loc.answer(self.belief, score, checks, self.belief)
 
     def run(self, images: Iterable[np.ndarray]) -> Iterator[Localization]:
