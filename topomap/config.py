@@ -245,6 +245,15 @@ class RelativePoseConfig:
     min_abs_y: float = 0.02  # |y| below this (normalised, ~horizon) carries no depth ratio
     floor_min_y: float = 0.08  # camera_height scale: of the points this far below the horizon...
     floor_fraction: float = 0.3  # ... this lowest fraction (in the image) is taken to lie on the floor
+    # The inliers count as one plane (a wall) when the planar-motion homography explains this
+    # fraction of them (>= 1 disables); its solutions then replace the essential matrix's, which
+    # slides along the wall's ambiguity. Only solutions with at least plane_min_visible of the
+    # points on the plane's visible side are kept, and only when the translation is at least
+    # plane_min_t_over_d of the plane's distance: nearer the goal every scene fits a homography
+    # (parallax too small to tell a wall from a room). (median_depth scale only.)
+    plane_inlier_fraction: float = 0.9
+    plane_min_visible: float = 0.9
+    plane_min_t_over_d: float = 0.05
 
     def __post_init__(self) -> None:
         if self.ransac_px <= 0:

@@ -51,7 +51,7 @@ from topomap.matching import Verification, verify
 from topomap.retrieval import sad
 from topomap.motion import STOP, Command, VehicleKind, vehicle_kind
 from topomap.plan import Planner, Route
-from topomap.servo.geometry import PoseStatus
+from topomap.servo.geometry import PoseStatus, relative_pose, wall_normals
 from topomap.servo.servo import AppearanceServo, ServoOutput, ServoStatus
 
 __all__ = ["RobotLike", "NavStatus", "EventKind", "NavEvent", "NavOutcome", "Navigator"]
@@ -171,6 +171,7 @@ class Navigator:
         self._estimate = None  # the servo's latest disturbance estimate
         self._neighbour_sad: dict[int, float] = {}
         self._away: dict[int, np.ndarray | None] = {}
+        self._normals: dict[int, tuple[float, ...]] = {}
 
     # ------------------------------------------------------------------ robot I/O
     def _look(self) -> tuple[np.ndarray, Query]:
@@ -259,7 +260,7 @@ class Navigator:
         # the side of the subgoal camera the robot comes from: behind it (x < 0) when following the
         # taught direction, in front of it when driving the route backwards
         self._approach_side: float | None = None
-        self.servo.retarget()
+        self.servo.retarget(self._wall_normals(nodes[i]))
         self.servo.reconfigure(**(self._goal_servo if i == len(nodes) - 1 else self._waypoint_servo))
 
     def _follow(self, route: Route, goal: int, budget_s: float) -> Iterator[NavEvent]:
@@ -340,6 +341,26 @@ class Navigator:
                 yield NavEvent(EventKind.REPLANNED, self._time, f"new route {nodes}", subgoal=nodes[0], route=tuple(nodes))
                 continue
             self._move(s.command)
+
+    def _wall_normals(self, node: int) -> tuple[float, ...]:
+        """Normals of the node keyframe's wall allowed by its neighbours' keyframes (cached).
+
+        Each neighbour that sees the keyframe's view as one plane allows two normals: the wall's and
+        a false one that depends on where the neighbour was taken. The servo keeps the pose whose
+        normal agrees (:func:`~topomap.servo.geometry.choose_plane_solution`)."""
+        if node not in self._normals:
+            goal = self.map.nodes[node].features
+            normals: list[float] = []
+            for nb in self.map.neighbours(node):
+                f = self.map.nodes[nb].features
+                v = verify(f, goal, self.map.config.match)
+                if v.inliers < self.map.config.match.min_inliers:
+                    continue
+                m = v.inlier_matches
+                pose = relative_pose(f.keypoints[m.ia], goal.keypoints[m.ib], self.map.camera, self.servo.config.geometry)
+                normals += wall_normals(pose)
+            self._normals[node] = tuple(normals)
+        return self._normals[node]
 
     def _image_agrees(self, q: Query, v: Verification, node: int) -> bool:
         """The current image shows the node's keyframe view: verified matches barely moved

@@ -27,7 +27,7 @@ from topomap.camera import CameraIntrinsics
 from topomap.config import ServoConfig
 from topomap.errors import ConfigError
 from topomap.motion import STOP, Command, VehicleKind, vehicle_kind
-from topomap.servo.geometry import PoseStatus, RelativePose, relative_pose
+from topomap.servo.geometry import PoseStatus, RelativePose, choose_plane_solution, relative_pose
 from topomap.servo.laws import LawState, omni_law, unicycle_law
 from topomap.servo.observer import DisturbanceEstimate, DisturbanceObserver
 
@@ -82,15 +82,23 @@ class AppearanceServo:
         self.observer = DisturbanceObserver(self.config.observer, 1.0 / self.config.nominal_scale_m)
         self.state = LawState()
         self.steps = 0
+        # facing a wall the images allow two poses; normals of the goal's wall seen from other
+        # viewpoints pick one (retarget)
+        self.wall_normals: tuple[float, ...] = ()
 
     # ------------------------------------------------------------------ lifecycle
-    def retarget(self) -> None:
+    def retarget(self, wall_normals=()) -> None:
         """A new goal image: restart pose references, keep the disturbance estimates.
+
+        ``wall_normals``: angles [rad] of the goal wall's normal that other views of the goal image
+        allow (:func:`~topomap.servo.geometry.wall_normals`); facing a single wall they decide
+        between the two poses the images allow.
 
         The unicycle keeps its along-track integral (a forward disturbance lives in the vehicle
         frame); the omnidirectional integral is expressed in the old goal's frame and restarts.
         """
         self.observer.reset_target()
+        self.wall_normals = tuple(float(n) for n in wall_normals)
         keep = self.state.integral if self.vehicle is VehicleKind.UNICYCLE else (0.0, 0.0)
         self.state = LawState(integral=keep)
 
@@ -99,6 +107,7 @@ class AppearanceServo:
         self.observer = DisturbanceObserver(self.config.observer, 1.0 / self.config.nominal_scale_m)
         self.state = LawState()
         self.steps = 0
+        self.wall_normals = ()
 
     # ------------------------------------------------------------------ one step
     def step(
@@ -122,6 +131,7 @@ class AppearanceServo:
         cfg = self.config
         self.steps += 1
         pose = relative_pose(matched_cur_px, matched_goal_px, camera, cfg.geometry, goal_camera=goal_camera)
+        pose = choose_plane_solution(pose, self.wall_normals)
         if pose.status is PoseStatus.OK:
             x_s, z_s = pose.x_s, pose.z_s
         elif pose.status is PoseStatus.PURE_ROTATION:
