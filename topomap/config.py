@@ -432,6 +432,11 @@ class NavigateConfig:
     """The navigation loop (see :mod:`topomap.navigate`): localize -> plan -> servo -> switch."""
 
     control_period_s: float = 0.1  # one image and one command per period [s]
+    # The camera's height above the floor [m] (None: the robot's ``camera_height_m`` if it has one,
+    # else unknown). Known, it makes the goal's distances metric: the goal keyframe's median depth is
+    # measured against its graph neighbours' keyframes with the floor points (camera-height scale)
+    # — once per goal, a median over neighbours, where per-image floor estimates would jitter.
+    camera_height_m: float | None = None
     # An intermediate subgoal is reached when the servo estimates it closer than this [m] ...
     switch_distance_m: float = 0.35
     # Distance and "driven past" count only with the heading within this of the subgoal's: at the

@@ -36,7 +36,7 @@ import enum
 import logging
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import networkx as nx
@@ -171,7 +171,9 @@ class Navigator:
         self._estimate = None  # the servo's latest disturbance estimate
         self._neighbour_sad: dict[int, float] = {}
         self._away: dict[int, np.ndarray | None] = {}
-        self._normals: dict[int, tuple[float, ...]] = {}
+        self._geometry: dict[int, tuple[tuple[float, ...], float | None]] = {}
+        height = self.config.camera_height_m
+        self._camera_height_m = height if height is not None else getattr(robot, "camera_height_m", None)
 
     # ------------------------------------------------------------------ robot I/O
     def _look(self) -> tuple[np.ndarray, Query]:
@@ -260,7 +262,8 @@ class Navigator:
         # the side of the subgoal camera the robot comes from: behind it (x < 0) when following the
         # taught direction, in front of it when driving the route backwards
         self._approach_side: float | None = None
-        self.servo.retarget(self._wall_normals(nodes[i]))
+        normals, scale = self._goal_geometry(nodes[i])
+        self.servo.retarget(normals, scale if i == len(nodes) - 1 else None)  # metric at the goal
         self.servo.reconfigure(**(self._goal_servo if i == len(nodes) - 1 else self._waypoint_servo))
 
     def _follow(self, route: Route, goal: int, budget_s: float) -> Iterator[NavEvent]:
@@ -342,25 +345,38 @@ class Navigator:
                 continue
             self._move(s.command)
 
-    def _wall_normals(self, node: int) -> tuple[float, ...]:
-        """Normals of the node keyframe's wall allowed by its neighbours' keyframes (cached).
+    def _goal_geometry(self, node: int) -> tuple[tuple[float, ...], float | None]:
+        """What the node keyframe's graph neighbours tell about its view (cached): the normals of its
+        wall, and its scale (metres per scaled unit) when the camera height is known.
 
-        Each neighbour that sees the keyframe's view as one plane allows two normals: the wall's and
-        a false one that depends on where the neighbour was taken. The servo keeps the pose whose
-        normal agrees (:func:`~topomap.servo.geometry.choose_plane_solution`)."""
-        if node not in self._normals:
+        Normals: each neighbour that sees the keyframe's view as one plane allows two, the wall's and
+        a false one that depends on where the neighbour was taken; the servo keeps the pose whose
+        normal agrees (:func:`~topomap.servo.geometry.choose_plane_solution`). Scale: each
+        neighbour's position measured in both conventions, camera height (floor points) over median
+        depth; the median of those, clipped to 1/3..3 times the nominal scale."""
+        if node not in self._geometry:
             goal = self.map.nodes[node].features
+            geo = self.servo.config.geometry
+            floor, plain = replace(geo, scale="camera_height"), replace(geo, plane_inlier_fraction=1.0)
             normals: list[float] = []
+            scales: list[float] = []
             for nb in self.map.neighbours(node):
                 f = self.map.nodes[nb].features
                 v = verify(f, goal, self.map.config.match)
                 if v.inliers < self.map.config.match.min_inliers:
                     continue
-                m = v.inlier_matches
-                pose = relative_pose(f.keypoints[m.ia], goal.keypoints[m.ib], self.map.camera, self.servo.config.geometry)
-                normals += wall_normals(pose)
-            self._normals[node] = tuple(normals)
-        return self._normals[node]
+                cur, dst = f.keypoints[v.inlier_matches.ia], goal.keypoints[v.inlier_matches.ib]
+                normals += wall_normals(relative_pose(cur, dst, self.map.camera, geo))
+                if self._camera_height_m is not None:
+                    a, b = relative_pose(cur, dst, self.map.camera, plain), relative_pose(cur, dst, self.map.camera, floor)
+                    if a.status is PoseStatus.OK and b.status is PoseStatus.OK and a.rho_s > 1e-3:
+                        scales.append(self._camera_height_m * b.rho_s / a.rho_s)
+            scale = None
+            if scales:
+                nominal = self.servo.config.nominal_scale_m
+                scale = float(np.clip(np.median(scales), nominal / 3.0, 3.0 * nominal))
+            self._geometry[node] = (tuple(normals), scale)
+        return self._geometry[node]
 
     def _image_agrees(self, q: Query, v: Verification, node: int) -> bool:
         """The current image shows the node's keyframe view: verified matches barely moved

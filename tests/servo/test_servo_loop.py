@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pytest
-from servo_synth import CAMERA, disturbance, matches, room_points, servo_episode
+from servo_synth import CAMERA, disturbance, matches, median_goal_depth, room_points, servo_episode
 
 from topomap.config import SERVO_PRESETS, ServoConfig, servo_preset
 from topomap.errors import ConfigError
@@ -114,3 +114,21 @@ def test_presets_build_working_servos():
     for name, cfg in SERVO_PRESETS.items():
         out = AppearanceServo("unicycle", cfg).step(cp, gp, CAMERA, 0.1)
         assert out.status is ServoStatus.APPROACHING, name
+
+
+def test_a_known_goal_scale_makes_distances_metric():
+    """retarget(scale_m=...) measures the goal in metres: with the true median depth of the goal's
+    points, position_error_m is the true distance; the nominal scale gets it wrong by their ratio."""
+    rng = np.random.default_rng(8)
+    rel = (-0.6, 0.2, 0.05)
+    cp, gp, idx = matches(POINTS, in_world(rel), GOAL, rng, noise_px=0.2)
+    depth = median_goal_depth(POINTS, GOAL, idx)
+    nominal = AppearanceServo("omni").step(cp, gp, CAMERA, 0.1)
+    servo = AppearanceServo("omni")
+    servo.retarget(scale_m=depth)
+    metric = servo.step(cp, gp, CAMERA, 0.1)
+    true = math.hypot(rel[0], rel[1])
+    assert metric.position_error_m == pytest.approx(true, rel=0.1)
+    assert nominal.position_error_m == pytest.approx(true * servo.config.nominal_scale_m / depth, rel=0.1)
+    servo.retarget()
+    assert servo.scale_m == servo.config.nominal_scale_m

@@ -25,7 +25,8 @@ def test_robot_side_has_images_and_commands_but_no_pose(world, renderer):
         assert robot.kind is VehicleKind.OMNI
         assert robot.camera == default_camera()
         public = {n for n in dir(robot) if not n.startswith("_")}
-        assert public == {"apply", "camera", "kind", "render"}
+        assert public == {"apply", "camera", "camera_height_m", "kind", "render"}  # mounting, not pose
+        assert robot.camera_height_m == pytest.approx(0.8)
         with pytest.raises(AttributeError):
             robot.pose = (0, 0, 0)  # __slots__: nothing can be hung on it either
         img = robot.render()

@@ -51,7 +51,7 @@ class ServoOutput:
 
     ``command``: the velocity to apply for the next period; ``position_error_s``: estimated distance
     to the goal ``rho / lambda`` (0 when the images show no translation, NaN when lost);
-    ``position_error_m``: the same times ``nominal_scale_m`` (metres if the scale guess is right);
+    ``position_error_m``: the same times the goal's scale (``retarget``; default ``nominal_scale_m``);
     ``heading_error_rad``: estimated relative heading (NaN when lost); ``inliers``: matches that
     agree with the planar motion; ``converged``: both errors below the configured tolerances.
     """
@@ -85,20 +85,25 @@ class AppearanceServo:
         # facing a wall the images allow two poses; normals of the goal's wall seen from other
         # viewpoints pick one (retarget)
         self.wall_normals: tuple[float, ...] = ()
+        self.scale_m = self.config.nominal_scale_m  # metres per scaled unit at this goal (best guess)
 
     # ------------------------------------------------------------------ lifecycle
-    def retarget(self, wall_normals=()) -> None:
+    def retarget(self, wall_normals=(), scale_m: float | None = None) -> None:
         """A new goal image: restart pose references, keep the disturbance estimates.
 
         ``wall_normals``: angles [rad] of the goal wall's normal that other views of the goal image
         allow (:func:`~topomap.servo.geometry.wall_normals`); facing a single wall they decide
-        between the two poses the images allow.
+        between the two poses the images allow. ``scale_m``: the goal's scale (metres per scaled
+        unit, e.g. its median depth) when known; it turns the estimated distance into metres
+        (``position_error_m``, convergence) and sets the laws' metric radii and gains; default
+        ``nominal_scale_m``.
 
         The unicycle keeps its along-track integral (a forward disturbance lives in the vehicle
         frame); the omnidirectional integral is expressed in the old goal's frame and restarts.
         """
         self.observer.reset_target()
         self.wall_normals = tuple(float(n) for n in wall_normals)
+        self.scale_m = float(scale_m) if scale_m is not None else self.config.nominal_scale_m
         keep = self.state.integral if self.vehicle is VehicleKind.UNICYCLE else (0.0, 0.0)
         self.state = LawState(integral=keep)
 
@@ -108,6 +113,7 @@ class AppearanceServo:
         self.state = LawState()
         self.steps = 0
         self.wall_normals = ()
+        self.scale_m = self.config.nominal_scale_m
 
     # ------------------------------------------------------------------ one step
     def step(
@@ -143,14 +149,16 @@ class AppearanceServo:
                                pose.inliers, False, est)
         theta = pose.theta
         est = self.observer.update(dt, last_command, theta, pose.position_s if pose.status is PoseStatus.OK else None)
+        # the laws' metric radii and gains at this goal's scale (the observer keeps its own)
+        law_cfg = cfg if self.scale_m == cfg.nominal_scale_m else replace(cfg, nominal_scale_m=self.scale_m)
         if self.vehicle is VehicleKind.UNICYCLE:
             cmd, self.state = unicycle_law(
-                x_s, z_s, theta, cfg, self.state, dt, d_omega_hat=est.d_omega, kappa_hat=est.kappa, mu_hat=est.mu_f
+                x_s, z_s, theta, law_cfg, self.state, dt, d_omega_hat=est.d_omega, kappa_hat=est.kappa, mu_hat=est.mu_f
             )
         else:
-            cmd, self.state = omni_law(x_s, z_s, theta, cfg, self.state, dt, d_omega_hat=est.d_omega)
+            cmd, self.state = omni_law(x_s, z_s, theta, law_cfg, self.state, dt, d_omega_hat=est.d_omega)
         rho_s = math.hypot(x_s, z_s)
-        dist_m = rho_s * cfg.nominal_scale_m
+        dist_m = rho_s * self.scale_m
         converged = dist_m < cfg.position_tol_m and abs(theta) < math.radians(cfg.heading_tol_deg)
         if converged:
             status = ServoStatus.CONVERGED

@@ -64,7 +64,8 @@ class StepReport:
 
 @runtime_checkable
 class RobotInterface(Protocol):
-    """What navigation may use: a simulated :class:`Robot` or a real robot's driver."""
+    """What navigation may use: a simulated :class:`Robot` or a real robot's driver (optionally
+    also ``camera_height_m``, the camera's mounting height, which makes goal distances metric)."""
 
     camera: CameraIntrinsics
     kind: VehicleKind
@@ -91,6 +92,11 @@ class Robot:
     def kind(self) -> VehicleKind:
         """Unicycle or omnidirectional: which command channels the vehicle has."""
         return self._sim.vehicle_config.kind
+
+    @property
+    def camera_height_m(self) -> float:
+        """How high the camera is mounted above the floor [m] (fixed; a real robot knows it too)."""
+        return self._sim.camera_height_m
 
     def render(self) -> np.ndarray:
         """The current camera image: a fresh ``(H, W, 3) uint8`` RGB array (nothing attached)."""
