@@ -190,3 +190,33 @@ def test_missing_or_foreign_map(runner, cli_app, tmp_path):
 def test_demo_options_need_no_map(runner, cli_app, tmp_path):
     res = runner.invoke(cli_app, ["navigate", "--goal", "3"])
     assert res.exit_code == 1 and "need a MAP" in res.output
+
+
+def test_stalled_at_goal_windows():
+    """The settle test (medians over a window): a short one near the goal, and the patient one that
+    lets a unicycle settle a little further out when it no longer makes progress."""
+    import types
+
+    import numpy as np
+
+    from topomap.config import NavigateConfig
+
+    cfg = NavigateConfig()
+    nav = types.SimpleNamespace(config=cfg)
+    rng = np.random.default_rng(0)
+    t = np.arange(0.0, 25.0, cfg.control_period_s)
+
+    def history(dist, noise=0.03):
+        return [(ti, d + rng.normal(0, noise), rng.normal(0, 0.01)) for ti, d in zip(t, dist)]
+
+    def stalled(h, patient):
+        args = (cfg.settle_patience_max_m, cfg.settle_patience_s, cfg.settle_patience_progress_m) if patient else ()
+        return Navigator._stalled_at_goal(nav, h, *args)
+
+    stuck = history(np.full(len(t), 0.15))  # 15 cm out, no progress
+    assert not stalled(stuck, patient=False) and stalled(stuck, patient=True)
+    closing = history(np.linspace(0.25, 0.05, len(t)))  # still approaching
+    assert not stalled(closing, patient=True)
+    near = history(np.full(len(t), 0.02), noise=0.005)  # estimates jitter less close to the goal
+    assert stalled(near, patient=False) and stalled(near, patient=True)
+    assert not stalled(stuck[:150], patient=True)  # 15 s: not patient enough yet

@@ -464,6 +464,15 @@ class NavigateConfig:
     arrive_descriptor_fraction: float = 0.5
     settle_progress_m: float = 0.01
     settle_max_m: float = 0.08
+    # A unicycle can also stall further out (heading aligned, no progress, a lateral offset it cannot
+    # remove without manoeuvres that lose the view). Aligned within settle_patience_max_m and
+    # changing less than settle_patience_progress_m over settle_patience_s (medians of the window's
+    # halves), it settles there if the image agrees within settle_patience_image_error (a looser
+    # flow bound; the thumbnail test as above): the best docking it can reach.
+    settle_patience_s: float = 20.0
+    settle_patience_max_m: float = 0.25
+    settle_patience_progress_m: float = 0.02
+    settle_patience_image_error: float = 0.06
     lost_after_steps: int = 15  # steps without usable geometry before re-localizing
     subgoal_timeout_s: float = 40.0  # a subgoal not reached in this time marks its edge as failed
     max_replans: int = 8

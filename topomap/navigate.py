@@ -299,10 +299,15 @@ class Navigator:
                 stalled = self._stalled_at_goal(history)
                 # the servo believes it is there but the image disagrees: a look-alike place
                 false_arrival = false_arrival + 1 if ((s.converged or stalled) and not image_ok) else 0
-                if converged_streak >= cfg.settle_steps or (image_ok and stalled):
+                settled = (self._stalled_at_goal(history, cfg.settle_patience_max_m, cfg.settle_patience_s,
+                                                 cfg.settle_patience_progress_m)
+                           and self._image_agrees(q, v, sub, cfg.settle_patience_image_error))
+                if converged_streak >= cfg.settle_steps or (image_ok and stalled) or settled:
                     self._move(STOP)
                     out.status = NavStatus.ARRIVED
-                    out.message = f"arrived at node {goal}"
+                    out.message = f"arrived at node {goal}" + (
+                        "" if converged_streak >= cfg.settle_steps or (image_ok and stalled)
+                        else f" (settled {s.position_error_m:.2f} m off by its estimate: no further progress)")
                     yield NavEvent(EventKind.ARRIVED, self._time, out.message, subgoal=goal, route=tuple(nodes))
                     return
             # -- intermediate subgoal: switch?
@@ -378,12 +383,13 @@ class Navigator:
             self._geometry[node] = (tuple(normals), scale)
         return self._geometry[node]
 
-    def _image_agrees(self, q: Query, v: Verification, node: int) -> bool:
+    def _image_agrees(self, q: Query, v: Verification, node: int, flow_bound: float | None = None) -> bool:
         """The current image shows the node's keyframe view: verified matches barely moved
-        (``arrive_image_error``) and the whole-image descriptor is close (``arrive_descriptor_fraction``
-        of the distance between the keyframe and its neighbours)."""
+        (``flow_bound``, default ``arrive_image_error``, of the width) and the whole-image descriptor is
+        close (``arrive_descriptor_fraction`` of the distance between the keyframe and its neighbours)."""
         cfg = self.config
-        if v.inliers < self.map.config.match.min_inliers or v.flow_px >= cfg.arrive_image_error * self.map.working_size[0]:
+        bound = cfg.arrive_image_error if flow_bound is None else flow_bound
+        if v.inliers < self.map.config.match.min_inliers or v.flow_px >= bound * self.map.working_size[0]:
             return False
         goal_desc = self.map.nodes[node].descriptor
         if goal_desc is None or q.descriptor.size != goal_desc.size:
@@ -416,24 +422,29 @@ class Navigator:
             self._neighbour_sad[node] = float(np.median(sad(own, np.stack(others)))) if others else 2 / math.sqrt(math.pi)
         return self._neighbour_sad[node]
 
-    def _stalled_at_goal(self, history: list[tuple[float, float, float]]) -> bool:
-        """Aligned, close, and no progress over the settle window (see NavigateConfig.settle_*).
+    def _stalled_at_goal(self, history: list[tuple[float, float, float]], max_m: float | None = None,
+                         window_s: float | None = None, progress_m: float | None = None) -> bool:
+        """Aligned, close, and no progress over the settle window (see NavigateConfig.settle_*;
+        ``max_m, window_s, progress_m`` default to ``settle_max_m, settle_window_s, settle_progress_m``).
 
         Medians, not extremes: under noisy disturbances the per-image estimates jitter by a few
         centimetres and degrees around a pose the servo can no longer improve."""
         cfg = self.config
+        max_m = cfg.settle_max_m if max_m is None else max_m
+        window_s = cfg.settle_window_s if window_s is None else window_s
+        progress_m = cfg.settle_progress_m if progress_m is None else progress_m
         now = history[-1][0]
-        if now - history[0][0] < cfg.settle_window_s:
+        if now - history[0][0] < window_s:
             return False
-        window = np.array([h[1:] for h in history if h[0] >= now - cfg.settle_window_s])
+        window = np.array([h[1:] for h in history if h[0] >= now - window_s])
         ok = np.isfinite(window).all(axis=1)
         if ok.mean() < 0.8:
             return False
         dist, head = window[ok, 0], np.abs(window[ok, 1])
         half = len(dist) // 2
         progress = abs(float(np.median(dist[:half])) - float(np.median(dist[half:]))) if half else math.inf
-        return bool(np.median(head) < math.radians(cfg.settle_heading_deg) and np.median(dist) < cfg.settle_max_m
-                    and progress < cfg.settle_progress_m)
+        return bool(np.median(head) < math.radians(cfg.settle_heading_deg) and np.median(dist) < max_m
+                    and progress < progress_m)
 
     def _switch_reason(self, q: Query, s: ServoOutput, nxt: int, v: Verification) -> str:
         """Why the current intermediate subgoal counts as reached, or ``""``."""
