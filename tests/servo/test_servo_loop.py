@@ -132,3 +132,17 @@ def test_a_known_goal_scale_makes_distances_metric():
     assert nominal.position_error_m == pytest.approx(true * servo.config.nominal_scale_m / depth, rel=0.1)
     servo.retarget()
     assert servo.scale_m == servo.config.nominal_scale_m
+
+
+def test_blind_servo_turns_back_toward_the_goal_heading():
+    """Lost (no geometry) with a dead-reckoned heading error, the compensating servo turns in place
+    toward the goal's heading (and cancels d_omega); the uncompensated baseline just stops."""
+    from topomap.servo.observer import DisturbanceEstimate
+
+    est = DisturbanceEstimate(d_omega=0.1, d_omega_std=0.01, theta=0.4, kappa=1 / 3.0)
+    for vehicle in ("unicycle", "omni"):
+        cmd = AppearanceServo(vehicle).reacquire_command(est)
+        assert cmd.omega == pytest.approx(-1.0 * 0.4 - 0.1) and cmd.v_f == 0.0 and cmd.v_h == 0.0
+    aligned = DisturbanceEstimate(d_omega=0.1, d_omega_std=0.01, theta=0.0, kappa=1 / 3.0)
+    assert AppearanceServo("omni").reacquire_command(aligned).omega == pytest.approx(-0.1)  # hold only
+    assert AppearanceServo("omni", servo_preset("uncompensated")).reacquire_command(est) == STOP

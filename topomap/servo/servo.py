@@ -145,7 +145,7 @@ class AppearanceServo:
         else:
             est = self.observer.update(dt, last_command, None, None)
             log.debug("servo step %d: no geometry (%s, %d inliers)", self.steps, pose.status.value, pose.inliers)
-            return ServoOutput(self.hold_command(est), ServoStatus.LOST, pose, math.nan, math.nan, math.nan,
+            return ServoOutput(self.reacquire_command(est), ServoStatus.LOST, pose, math.nan, math.nan, math.nan,
                                pose.inliers, False, est)
         theta = pose.theta
         est = self.observer.update(dt, last_command, theta, pose.position_s if pose.status is PoseStatus.OK else None)
@@ -167,6 +167,18 @@ class AppearanceServo:
         else:
             status = ServoStatus.APPROACHING
         return ServoOutput(cmd.for_vehicle(self.vehicle), status, pose, rho_s, dist_m, theta, pose.inliers, converged, est)
+
+    def reacquire_command(self, est: DisturbanceEstimate) -> Command:
+        """While blind: hold position (:meth:`hold_command`) and turn in place toward the goal's
+        heading as the observer dead-reckons it (commanded turns and the estimated d_omega since the
+        last image): a unicycle manoeuvring near its goal loses the view by swinging its heading."""
+        cmd = self.hold_command(est)
+        cfg = self.config
+        if cmd is STOP or not math.isfinite(est.theta) or abs(est.theta) < math.radians(cfg.heading_tol_deg):
+            return cmd
+        turn = Command(cmd.v_f, cmd.v_h, -cfg.k_theta * est.theta - est.d_omega).clipped(
+            0.3 * cfg.max_speed_mps, cfg.max_turn_rps)
+        return turn.for_vehicle(self.vehicle)
 
     def hold_command(self, est: DisturbanceEstimate) -> Command:
         """Stand still while blind: cancel the disturbances estimated so far (STOP before the
