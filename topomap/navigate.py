@@ -60,7 +60,8 @@ log = logging.getLogger(__name__)
 
 
 class RobotLike(Protocol):
-    """What the navigator needs from a robot: images, intrinsics, and a way to move."""
+    """What the navigator needs from a robot: images, intrinsics, and a way to move (optionally a
+    ``camera_height_m`` attribute, the camera's mounting height: it makes goal distances metric)."""
 
     @property
     def camera(self) -> CameraIntrinsics: ...
@@ -299,15 +300,16 @@ class Navigator:
                 stalled = self._stalled_at_goal(history)
                 # the servo believes it is there but the image disagrees: a look-alike place
                 false_arrival = false_arrival + 1 if ((s.converged or stalled) and not image_ok) else 0
-                settled = (self._stalled_at_goal(history, cfg.settle_patience_max_m, cfg.settle_patience_s,
-                                                 cfg.settle_patience_progress_m)
-                           and self._image_agrees(q, v, sub, cfg.settle_patience_image_error))
-                if converged_streak >= cfg.settle_steps or (image_ok and stalled) or settled:
+                precise = converged_streak >= cfg.settle_steps or (image_ok and stalled)
+                settled = not precise and (
+                    self._stalled_at_goal(history, cfg.settle_patience_max_m, cfg.settle_patience_s,
+                                          cfg.settle_patience_progress_m)
+                    and self._image_agrees(q, v, sub, cfg.settle_patience_image_error))
+                if precise or settled:
                     self._move(STOP)
                     out.status = NavStatus.ARRIVED
                     out.message = f"arrived at node {goal}" + (
-                        "" if converged_streak >= cfg.settle_steps or (image_ok and stalled)
-                        else f" (settled {s.position_error_m:.2f} m off by its estimate: no further progress)")
+                        "" if precise else f" (settled {s.position_error_m:.2f} m off by its estimate: no further progress)")
                     yield NavEvent(EventKind.ARRIVED, self._time, out.message, subgoal=goal, route=tuple(nodes))
                     return
             # -- intermediate subgoal: switch?
@@ -371,9 +373,12 @@ class Navigator:
                 if v.inliers < self.map.config.match.min_inliers:
                     continue
                 cur, dst = f.keypoints[v.inlier_matches.ia], goal.keypoints[v.inlier_matches.ib]
-                normals += wall_normals(relative_pose(cur, dst, self.map.camera, geo))
+                pose = relative_pose(cur, dst, self.map.camera, geo)
+                normals += wall_normals(pose, geo.plane_min_t_over_d)
                 if self._camera_height_m is not None:
-                    a, b = relative_pose(cur, dst, self.map.camera, plain), relative_pose(cur, dst, self.map.camera, floor)
+                    # without plane solutions the pose is the essential matrix's already
+                    a = relative_pose(cur, dst, self.map.camera, plain) if pose.plane_solutions else pose
+                    b = relative_pose(cur, dst, self.map.camera, floor)
                     if a.status is PoseStatus.OK and b.status is PoseStatus.OK and a.rho_s > 1e-3:
                         scales.append(self._camera_height_m * b.rho_s / a.rho_s)
             scale = None
