@@ -53,19 +53,20 @@ class Episode:
     seed: int
 
 
-def prepare_world(seed: int, cache: Path) -> Path:
-    """Teach the loop of world ``seed`` and build its map (cached); returns the map path."""
+def prepare_world(seed: int, cache: Path, textures: str | None = None) -> Path:
+    """Teach the loop of world ``seed`` (wall photographs from ``textures`` if given) and build its
+    map (cached); returns the map path."""
     from topomap.build import build_map
     from topomap.camera import load_camera
     from topomap.sim.teach import teach
     from topomap.sim.world import default_world, generate_world
     from topomap.store import save_map
 
-    folder = cache / f"world{seed}"
+    folder = cache / (f"world{seed}" + (f"-{Path(textures).name}" if textures else ""))
     map_path = folder / "map.topomap"
     if map_path.is_file():
         return map_path
-    world = default_world() if seed == 0 else generate_world(seed)
+    world = default_world() if seed == 0 and not textures else generate_world(seed, textures=textures)
     run = teach(world, "loop", folder / "teach", overwrite=True)
     tmap = build_map(folder / "teach", camera=load_camera(run.camera_path))
     return save_map(tmap, map_path, overwrite=True)
@@ -184,6 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-hops", type=int, default=10, help="only goals at most this many route hops away (0: any)")
     ap.add_argument("--budget-per-hop", type=float, default=10.0,
                     help="navigation time budget: 60 s + this per route hop [s] (both servos)")
+    ap.add_argument("--textures", default=None,
+                    help="photograph folder for the walls of generated worlds (unseen textures; default: the built-in crops)")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cache", type=Path, default=None, help="folder for teach runs and maps (reused)")
@@ -200,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(args.seed)
     jobs: list[tuple[str, Episode, str, str, float]] = []
     with ProcessPoolExecutor(args.jobs) as pool:
-        maps = list(pool.map(prepare_world, seeds, [cache] * len(seeds)))
+        maps = list(pool.map(prepare_world, seeds, [cache] * len(seeds), [args.textures] * len(seeds)))
         print(f"worlds {seeds}: maps ready in {time.perf_counter() - t0:.0f} s ({cache})", flush=True)
         per = [args.episodes // len(seeds) + (i < args.episodes % len(seeds)) for i in range(len(seeds))]
         drawn = [draw_episodes(path, seed, n, rng, args.start_offset, args.max_hops, 1000 * seed)

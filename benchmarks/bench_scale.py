@@ -13,8 +13,11 @@ The maps are synthetic but made of real data:
   what it costs on real data and RANSAC fails the way it fails on a wrong place.
 * **Queries**: the 111 corridor query frames. ``Localizer(descriptor="bow")`` answers them:
   bag-of-words scores over the inverted file -> robust z-scores -> top-k (``shortlist_k`` = 10)
-  -> geometric verification of those k nodes -> answer. Feature extraction (``prepare``) is timed
-  apart. Recall@1 on the real nodes shows that the distractors do not push the right node out.
+  -> geometric verification of those k nodes (guided: descriptors matched only under the same
+  vocabulary-tree node, PROSAC) -> answer. Feature extraction (``prepare``) is timed apart. The row
+  "brute" verifies as before guided matching (brute-force Hamming matching, MAGSAC): the baseline
+  of that change in the same run. Recall@1 on the real nodes shows how far the distractors push
+  the right node out (bag-of-words alone is weak on the corridor: it falls with map size).
 
 Exhaustive matching = ``matching.verify`` of the query against every node: measured in full at 1k
 nodes (a few queries), extrapolated linearly from the measured per-pair cost at 10k and 100k.
@@ -42,7 +45,7 @@ from topomap.features import Features, extract
 from topomap.graph import Edge, EdgeKind, Node, TopoMap
 from topomap.groundtruth import read_correspondences
 from topomap.images import open_sequence, to_working_resolution
-from topomap.localize import Localizer, _robust_z
+from topomap.localize import Localizer, _robust_z, _top_rows
 from topomap.matching import verify
 from topomap.retrieval import BowIndex, Vocabulary, sad
 
@@ -105,8 +108,10 @@ def synthetic_map(base: TopoMap, voc: Vocabulary, ref_words: list[np.ndarray], c
         r = rank[src]
         shifted = (r // band) * band + (r % band + int(rng.integers(1, band))) % band
         word_lists.append(by_rank[np.minimum(shifted, v - 1)])
+    # each feature's word (guided matching): a distractor's descriptors are its source keyframe's
+    feature_words = word_lists[:k] + [word_lists[i % k] for i in range(k, n)]
     t0 = time.perf_counter()
-    index = BowIndex.from_word_lists(voc, np.arange(n), word_lists)
+    index = BowIndex.from_word_lists(voc, np.arange(n), word_lists, feature_words)
     build_s = time.perf_counter() - t0
     thumb = np.zeros((4, 4), np.uint8)
     tmap = TopoMap(camera=base.camera, config=base.config, meta=dict(base.meta))
@@ -156,10 +161,17 @@ def main() -> None:
     ap.add_argument("--sizes", default="1000,10000,100000")
     ap.add_argument("--queries", type=int, default=111, help="corridor query frames used per size")
     ap.add_argument("--top-k", default="10,3", help="shortlist sizes to time (10 = LocalizeConfig default)")
+    ap.add_argument("--no-brute-force", action="store_true", help="skip the brute-force-verification rows")
     ap.add_argument("--exhaustive-queries", type=int, default=3, help="queries matched exhaustively at the smallest size")
     args = ap.parse_args()
     sizes = [int(s) for s in args.sizes.split(",")]
+    # (label, config): guided verification (the default) at each k, and the previous verification
+    # (brute-force matching, MAGSAC with 2000 hypotheses) at the first k for comparison
     ks = [int(k) for k in args.top_k.split(",")]
+    variants = [(f"top-{k}", LocalizeConfig(descriptor="bow", shortlist_k=k)) for k in ks]
+    if not args.no_brute_force:
+        variants.append((f"top-{ks[0]} brute", LocalizeConfig(descriptor="bow", shortlist_k=ks[0], guided_matching=False,
+                                                             verify_ransac_method="magsac", verify_max_iters=2000)))
     if not CORRIDOR.exists():
         sys.exit(f"corridor dataset not found under {CORRIDOR}; set TOPOMAP_SHARED")
     load_before = os.getloadavg()[0]
@@ -195,26 +207,34 @@ def main() -> None:
             how = f"measured in full ({nq} queries x {n} nodes)"
         else:
             how = "extrapolated from the per-pair cost"
-        for k in ks:
-            loc = Localizer(tmap, LocalizeConfig(descriptor="bow", shortlist_k=k), features_of=features_of)
+        for k, cfg in variants:
+            loc = Localizer(tmap, cfg, features_of=features_of)
             loc.localize_query(prepared[0])  # warm-up
             times, results = time_queries(loc, prepared)
             recall = evaluate(list(zip(names, results)), truth, tmap).recall_at[1]
             rows.append((n, k, times, recall, pair_ms * n, how, tmap.index.memory_bytes() / n,
                          int(tmap.index.stop_words.sum())))
-            log(f"{n} nodes, top-{k}: median {np.median(times['total']):.1f} ms, Recall@1 {recall:.3f}")
+            log(f"{n} nodes, {k}: median {np.median(times['total']):.1f} ms, Recall@1 {recall:.3f}")
         del tmap, loc, features_of
 
-    # fused mode adds a thumbnail distance to every node: its cost at each size, for reference
+    # fused mode (the default on keypoint maps) adds thumbnail distances to the bag of words' best
+    # LocalizeConfig.thumbnail_candidates nodes (all of them on smaller maps): their cost at each size
     rng = np.random.default_rng(0)
     q_desc = rng.standard_normal(768).astype(np.float32)
-    fused_ms = {}
+    m_thumb = LocalizeConfig().thumbnail_candidates
+    fused_ms, fused_all_ms = {}, {}
     for n in sizes:
         descs = rng.standard_normal((n, 768)).astype(np.float32)
+        bow = rng.standard_normal(n)
+        t0 = time.perf_counter()
+        for _ in range(5):
+            rows = _top_rows(bow, m_thumb) if n > m_thumb else slice(None)
+            _robust_z(-sad(q_desc, descs[rows]).astype(np.float64))
+        fused_ms[n] = (time.perf_counter() - t0) / 5 * 1e3
         t0 = time.perf_counter()
         for _ in range(5):
             _robust_z(-sad(q_desc, descs).astype(np.float64))
-        fused_ms[n] = (time.perf_counter() - t0) / 5 * 1e3
+        fused_all_ms[n] = (time.perf_counter() - t0) / 5 * 1e3
         del descs
 
     print(f"\nquery latency (BoW shortlist + verification of the top k + answer) and memory per node, "
@@ -222,14 +242,14 @@ def main() -> None:
     print(f"feature extraction (prepare) {extract_ms:.1f} ms per query, not included; vocabulary {voc.size} words "
           f"(depth {voc.depth}); real keyframe features {feat_node_bytes / 1024:.1f} KiB per node; exhaustive "
           f"per-pair verification {pair_ms:.2f} ms; load average {load_before:.1f} before, {os.getloadavg()[0]:.1f} after (2 cores)")
-    head = (f"{'nodes':>8}{'top-k':>6}{'median ms':>10}{'p90 ms':>8}{'BoW ms':>8}{'verify':>8}{'answer':>8}{'exh. ms':>10}"
+    head = (f"{'nodes':>8}{'verify':>15}{'median ms':>10}{'p90 ms':>8}{'BoW ms':>8}{'verify':>8}{'answer':>8}{'exh. ms':>10}"
             f"{'exh./tm':>9}{'R@1':>6}{'stop w.':>8}{'index B/node':>13}{'+feats B/node':>14}{'exh. B/node':>12}{'mem ratio':>10}")
     print(head)
     print("-" * len(head))
     for n, k, t, recall, exh, how, index_b, stop in rows:
         med = float(np.median(t["total"]))
         with_feats = index_b + feat_node_bytes
-        print(f"{n:>8}{k:>6}{med:10.1f}{np.percentile(t['total'], 90):8.1f}{np.median(t['appearance']):8.1f}"
+        print(f"{n:>8}{k:>15}{med:10.1f}{np.percentile(t['total'], 90):8.1f}{np.median(t['appearance']):8.1f}"
               f"{np.median(t['verify']):8.1f}{np.median(t['answer']):8.1f}{exh:10.0f}{exh / med:9.0f}{recall:6.2f}{stop:8d}"
               f"{index_b:13.0f}{with_feats:14.0f}{feat_node_bytes:12.0f}{with_feats / feat_node_bytes:10.2f}")
     print("  exh. ms: verification against every node, " + "; ".join(dict.fromkeys(f"{r[0]}: {r[5]}" for r in rows)))
@@ -237,16 +257,17 @@ def main() -> None:
     print("  mem ratio: (index + features kept in RAM for verification) / exhaustive (features of every node); with "
           "features read from the map file on demand (Localizer(features_of=...)) the index alone is "
           + ", ".join(dict.fromkeys(f"{r[6] / feat_node_bytes:.3f}" for r in rows)) + " of exhaustive")
-    for k in ks:
+    for k, _ in variants:
         mine = [r for r in rows if r[1] == k]
         first, last = mine[0], mine[-1]
         growth = np.median(last[2]["total"]) / np.median(first[2]["total"])
         bow = np.median(last[2]["appearance"]) / np.median(first[2]["appearance"])
         goal = "met" if np.median(last[2]["total"]) < 30 else "MISSED"
-        print(f"  top-{k}: {last[0] // first[0]}x the nodes -> {growth:.2f}x the median latency (BoW part {bow:.1f}x); "
+        print(f"  {k}: {last[0] // first[0]}x the nodes -> {growth:.2f}x the median latency (BoW part {bow:.1f}x); "
               f"goal median < 30 ms at {last[0]} nodes: {goal}")
-    print("  fused mode (--descriptor fused/auto) adds a thumbnail distance to every node: "
-          + ", ".join(f"{n}: {ms:.1f} ms" for n, ms in fused_ms.items()))
+    print(f"  fused mode (--descriptor fused/auto) adds thumbnail distances to the bag of words' best {m_thumb} nodes: "
+          + ", ".join(f"{n}: {ms:.1f} ms" for n, ms in fused_ms.items())
+          + " (to every node: " + ", ".join(f"{n}: {ms:.1f} ms" for n, ms in fused_all_ms.items()) + ")")
 
 
 if __name__ == "__main__":

@@ -150,6 +150,47 @@ def test_features_of_hook_and_shortlist_size(route):
     assert blind.inliers == 0 and all(c.inliers == -1 for c in blind.candidates)
 
 
+def test_guided_verification_matches_within_vocabulary_nodes(route, second_pass):
+    loc = route.loc
+    assert loc.guided and loc.config.verify_ransac_method == "prosac"
+    brute = Localizer(route.map, LocalizeConfig(guided_matching=False))
+    for i in (2, len(XS) // 2, len(XS) - 3):
+        q = second_pass[i]
+        guided, plain = loc.localize_query(q), brute.localize_query(q)
+        assert guided.node == plain.node and route.right(i, guided.node)
+        assert guided.inliers >= 0.7 * plain.inliers  # the same place found as solidly
+        m = guided.verification.matches
+        groups_q = route.map.index.vocabulary.ancestors(q.words, loc._group_level)
+        groups_n = route.map.index.vocabulary.ancestors(route.map.index.words_of_features(guided.node), loc._group_level)
+        assert np.all(groups_q[m.ia] == groups_n[m.ib])  # only same-group descriptors were compared
+        assert m.distance.max() <= loc.config.guided_max_hamming
+
+
+def test_map_indexed_without_feature_words_localizes_the_same(route, second_pass):
+    """Maps indexed before feature words were stored: words are computed on demand, same answers."""
+    from topomap.retrieval import BowIndex
+
+    arrays = {k: v for k, v in route.map.index.to_arrays().items() if not k.startswith("bow_feature")}
+    old = dataclasses.replace(route.map, index=BowIndex.from_arrays(arrays, "orb"))
+    loc = Localizer(old)
+    for i in (1, len(XS) // 2):
+        a, b = loc.localize_query(second_pass[i]), route.loc.localize_query(second_pass[i])
+        assert (a.node, a.inliers, a.confidence) == (b.node, b.inliers, b.confidence)
+    # a query prepared by another map's localizer is quantised again in this map's vocabulary
+    other = Localizer(build_map_of_views(route, [0, 1, 2, 3]))
+    q = other.prepare(route.view(5))
+    assert q.vocabulary is not route.map.index.vocabulary
+    assert route.loc.localize_query(q).node == route.loc.localize(route.view(5)).node
+
+
+def build_map_of_views(route: Route, views: list[int]):
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        write_sequence(Path(d), [route.view(i, 1000.0) for i in views])
+        return build_map(Path(d), CONFIG)
+
+
 def test_map_without_index(route):
     bare = dataclasses.replace(route.map, index=None)
     for descriptor in ("fused", "bow"):
@@ -168,6 +209,10 @@ def test_bad_localize_config(route):
         Localizer(route.map, LocalizeConfig(descriptor="sift"))
     with pytest.raises(ConfigError, match="min_confidence"):
         LocalizeConfig(min_confidence=1.5)
+    with pytest.raises(ConfigError, match="verify_ransac_method"):
+        LocalizeConfig(verify_ransac_method="lmeds")
+    with pytest.raises(ConfigError, match="match_groups"):
+        LocalizeConfig(match_groups=0)
     empty = dataclasses.replace(route.map, nodes={}, index=None)
     with pytest.raises(ConfigError, match="no nodes"):
         Localizer(empty)
@@ -328,3 +373,18 @@ def test_corridor_standing_still(corridor):
         filt = SequenceLocalizer(corridor.loc)
         nodes = [filt.update_query(corridor.queries[i]).node for _ in range(20)]
         assert len(set(nodes[STILL_SETTLE_FRAMES:])) == 1, (i, nodes)
+
+
+def test_fused_on_a_big_map_compares_thumbnails_of_the_bow_best_only(route, second_pass):
+    full = route.loc
+    few = Localizer(route.map, LocalizeConfig(thumbnail_candidates=5))
+    assert len(route.map.nodes) > 5 and full.mode == few.mode == "fused"
+    for i in (1, len(XS) // 2, len(XS) - 2):
+        q = second_pass[i]
+        a, b = full.appearance(q), few.appearance(q)
+        bow_only = Localizer(route.map, LocalizeConfig(descriptor="bow")).appearance(q)
+        top = np.argsort(-bow_only, kind="stable")[:5]
+        rest = np.setdiff1d(np.arange(len(b)), top)
+        thumb = b - bow_only
+        assert np.allclose(thumb[rest], thumb[top].min())  # the others: the lowest thumbnail score of the five
+        assert few.localize_query(q).node == full.localize_query(q).node

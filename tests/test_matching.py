@@ -10,7 +10,7 @@ from map_synth import scene, window
 from topomap.config import FeatureConfig, MatchConfig
 from topomap.errors import ConfigError
 from topomap.features import Features, extract
-from topomap.matching import Matches, match_descriptors, verify
+from topomap.matching import Matches, match_descriptors, match_descriptors_grouped, verify
 
 
 @pytest.fixture(scope="module")
@@ -93,3 +93,42 @@ def test_mixed_kinds_are_refused(pair):
     a, _, _ = pair
     with pytest.raises(ConfigError, match="cannot match orb features against sift"):
         match_descriptors(extract(a), extract(a, FeatureConfig(kind="sift", max_features=100)))
+
+
+def test_grouped_matching_with_one_group_is_brute_force(pair):
+    a, b, _ = pair
+    fa, fb = extract(a), extract(b)
+    brute = match_descriptors(fa, fb)
+    one = match_descriptors_grouped(fa, fb, np.zeros(len(fa), int), np.zeros(len(fb), int))
+    assert len(brute) > 100
+    # the same pairs, up to how equal distances are broken (OpenCV keeps the first of a tie)
+    pairs = lambda m: set(zip(m.ia.tolist(), m.ib.tolist()))  # noqa: E731
+    assert len(pairs(brute) ^ pairs(one)) <= 0.01 * len(brute)
+
+
+def test_grouped_matching_stays_within_groups_and_still_verifies(pair):
+    a, b, _ = pair
+    fa, fb = extract(a), extract(b)
+    # groups by the first descriptor byte's top 3 bits: true matches mostly share them
+    ga, gb = fa.descriptors[:, 0] >> 5, fb.descriptors[:, 0] >> 5
+    m = match_descriptors_grouped(fa, fb, ga, gb, max_distance=64)
+    assert np.all(ga[m.ia] == gb[m.ib]) and np.all(m.distance <= 64)
+    assert len(np.unique(m.ib)) == len(m)  # one-to-one
+    v = verify(fa, fb, matches=m)
+    assert v.inliers >= 100 and v.inlier_ratio > 0.7
+    # disjoint groups: nothing to match
+    assert len(match_descriptors_grouped(fa, fb, np.zeros(len(fa), int), np.ones(len(fb), int))) == 0
+    with pytest.raises(ValueError, match="one group per descriptor"):
+        match_descriptors_grouped(fa, fb, ga[:-1], gb)
+
+
+@pytest.mark.parametrize("kind", ["orb", "sift"])
+def test_prosac_verifies_like_magsac(pair, kind):
+    a, b, _ = pair
+    cfg = FeatureConfig(kind=kind, max_features=800)
+    fa, fb = extract(a, cfg), extract(b, cfg)
+    magsac = verify(fa, fb)
+    prosac = verify(fa, fb, MatchConfig(ransac_method="prosac", ransac_max_iters=1000))
+    assert prosac.inliers >= 0.95 * magsac.inliers
+    with pytest.raises(ConfigError, match="ransac_method"):
+        MatchConfig(ransac_method="lmeds")

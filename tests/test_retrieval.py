@@ -216,7 +216,7 @@ def test_index_from_word_lists_equals_build(orb_feats, orb_vocab):
     ids = sorted(orb_feats)
     words = [orb_vocab.quantize(orb_feats[i].descriptors) for i in ids]
     a = BowIndex.build(orb_vocab, orb_feats).to_arrays()
-    b = BowIndex.from_word_lists(orb_vocab, ids, words).to_arrays()
+    b = BowIndex.from_word_lists(orb_vocab, ids, words, feature_words=words).to_arrays()
     assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
     with pytest.raises(ValueError, match="unique"):
         BowIndex.from_word_lists(orb_vocab, [1, 1], words[:2])
@@ -308,3 +308,37 @@ def test_sad_is_the_mean_absolute_difference():
     rng = np.random.default_rng(0)
     many, q = rng.standard_normal((2500, 96)).astype(np.float32), rng.standard_normal(96).astype(np.float32)
     np.testing.assert_array_equal(sad(q, many), np.abs(many - q[None, :]).mean(axis=1))
+
+
+# ----------------------------------------------------------------------------- feature words (guided matching)
+def test_levels_and_ancestors_agree_with_the_tree_walk(orb_feats, orb_vocab):
+    desc = np.concatenate([f.descriptors for f in orb_feats.values()])
+    leaves = orb_vocab.quantize(desc)
+    for level in range(orb_vocab.depth):
+        walked = orb_vocab.quantize(desc, level=level)
+        np.testing.assert_array_equal(orb_vocab.ancestors(leaves, level), walked)
+        assert walked.max() < len(orb_vocab.centres[level])
+    np.testing.assert_array_equal(orb_vocab.quantize(desc, level=orb_vocab.depth - 1), leaves)
+    with pytest.raises(ValueError, match="level"):
+        orb_vocab.quantize(desc, level=orb_vocab.depth)
+    # the deepest level with at most that many nodes
+    assert orb_vocab.group_level(1) == 0
+    assert orb_vocab.group_level(len(orb_vocab.centres[1])) == 1
+    assert orb_vocab.group_level(len(orb_vocab.centres[1]) - 1) == 0
+
+
+def test_index_keeps_each_features_word(orb_feats, orb_vocab):
+    ids = sorted(orb_feats)
+    index = BowIndex.build(orb_vocab, {i: orb_feats[i] for i in ids[:5]})
+    index.add({i: orb_feats[i] for i in ids[5:]})  # add() extends them
+    for i in ids:
+        np.testing.assert_array_equal(index.words_of_features(i), orb_vocab.quantize(orb_feats[i].descriptors))
+    assert index.feature_words.dtype == np.uint16
+    back = BowIndex.from_arrays(index.to_arrays(), "orb")
+    np.testing.assert_array_equal(back.words_of_features(ids[-1]), index.words_of_features(ids[-1]))
+    # an index written before feature words existed still loads, without them
+    old = {k: v for k, v in index.to_arrays().items() if not k.startswith("bow_feature")}
+    assert BowIndex.from_arrays(old, "orb").words_of_features(ids[0]) is None
+    broken = dict(index.to_arrays(), bow_feature_indptr=index.feature_indptr[:-1])
+    with pytest.raises(MapFormatError, match="topomap index"):
+        BowIndex.from_arrays(broken, "orb")

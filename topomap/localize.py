@@ -10,7 +10,9 @@ thumbnail distance to each node is first standardised by that node's own distanc
 the map in sequence mode, so a bland image resembling everything (a "hub") does not collect the
 belief. The
 ``shortlist_k`` best nodes are verified geometrically; each verified inlier beyond the chance level
-(the matcher's ``min_inliers``) adds ``inlier_weight``.
+(the matcher's ``min_inliers``) adds ``inlier_weight``. Verification matches descriptors only under
+the same vocabulary-tree node (``guided_matching``, ORB-SLAM's bag-of-words search): a few hundred
+distance evaluations per feature become a few, with the same recall (see LocalizeConfig).
 A softmax of the scores (sharpness ``beta``) is the probability of being at each node; the
 *confidence* of an answer is the probability mass on the answered node and its graph neighbours.
 Under ``min_confidence`` the answer is ``unknown``: "not in this map".
@@ -28,8 +30,10 @@ then verified geometrically.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import logging
+from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
@@ -41,8 +45,8 @@ from topomap.errors import ConfigError, IndexMissingError, unknown_choice
 from topomap.features import Features, extract
 from topomap.graph import TopoMap
 from topomap.images import to_gray_u8, to_working_resolution
-from topomap.matching import Verification, verify
-from topomap.retrieval import sad, thumbnail_descriptor
+from topomap.matching import Verification, match_descriptors_grouped, verify
+from topomap.retrieval import Vocabulary, sad, thumbnail_descriptor
 
 __all__ = [
     "DESCRIPTORS",
@@ -110,11 +114,15 @@ class Localization:
 @dataclass(frozen=True)
 class Query:
     """A query image prepared for the map: ``image`` (H, W) uint8 at the map's working
-    resolution, its local ``features`` and whole-image ``descriptor`` (D,) float32."""
+    resolution, its local ``features``, whole-image ``descriptor`` (D,) float32 and, when the map
+    has a vocabulary, ``words`` (F,) int64: the word of each feature in ``vocabulary`` (a query
+    prepared for another map is quantised again, not misread)."""
 
     image: np.ndarray
     features: Features
     descriptor: np.ndarray
+    words: np.ndarray | None = None
+    vocabulary: Vocabulary | None = None
 
 
 def _top_rows(x: np.ndarray, m: int) -> np.ndarray:
@@ -180,6 +188,13 @@ class Localizer:
             self._descriptors = np.stack([tmap.nodes[int(n)].descriptor for n in self.node_ids]).astype(np.float32)
         self._desc_stats: tuple[np.ndarray, np.ndarray] | None = None  # computed on first use (sequence mode)
         self._adjacency = _adjacency(tmap, self.node_ids, self._row)
+        # guided matching: groups = vocabulary-tree nodes at the deepest level with <= match_groups nodes
+        self._vocabulary = tmap.index.vocabulary if tmap.index is not None else None
+        self.guided = self.config.guided_matching and self._vocabulary is not None
+        self._group_level = self._vocabulary.group_level(self.config.match_groups) if self.guided else 0
+        self._node_words: OrderedDict[int, np.ndarray] = OrderedDict()  # maps indexed without feature words
+        self._verify_config = dataclasses.replace(tmap.config.match, ransac_method=self.config.verify_ransac_method,
+                                                  ransac_max_iters=self.config.verify_max_iters)
 
     # ------------------------------------------------------------------ pieces
     def prepare(self, image: np.ndarray) -> Query:
@@ -188,7 +203,15 @@ class Localizer:
         work = to_working_resolution(gray, self.map.working_size)
         feats = extract(work, self.map.config.features)  # verification needs them in every mode
         desc = thumbnail_descriptor(work, self.descriptor_size, self.descriptor_patch) if self.use_thumbnail else np.zeros(0, np.float32)
+        if self.use_bow or self.guided:
+            return Query(work, feats, desc, self._vocabulary.quantize(feats.descriptors), self._vocabulary)
         return Query(work, feats, desc)
+
+    def _query_words(self, q: Query) -> np.ndarray:
+        """The query features' words in this map's vocabulary (computed by ``prepare``, else now)."""
+        if q.vocabulary is self._vocabulary and q.words is not None and len(q.words) == len(q.features):
+            return q.words
+        return self._vocabulary.quantize(q.features.descriptors)
 
     def appearance(self, q: Query, hub_correction: bool = False) -> np.ndarray:
         """Appearance score of every node, (N,) float64 in ``node_ids`` order (robust z-units).
@@ -201,15 +224,26 @@ class Localizer:
         """
         score = np.zeros(len(self.node_ids))
         if self.use_bow:
-            score += _robust_z(self.map.index.scores(q.features)[self._bow_rows].astype(np.float64))
+            score += _robust_z(self.map.index.scores(q.features, self._query_words(q))[self._bow_rows].astype(np.float64))
         if self.use_thumbnail:
-            d = sad(q.descriptor, self._descriptors).astype(np.float64)
+            # fused on a big map: thumbnails only for the bag of words' best nodes (a distance to all
+            # of 100k nodes costs ~35 ms); the others get the lowest thumbnail score of those
+            rows = None
+            if self.use_bow and len(score) > self.config.thumbnail_candidates:
+                rows = _top_rows(score, self.config.thumbnail_candidates)
+            d = sad(q.descriptor, self._descriptors if rows is None else self._descriptors[rows]).astype(np.float64)
             if hub_correction:
                 if self._desc_stats is None:
                     self._desc_stats = _distance_statistics(self._descriptors)
                 mu, sd = self._desc_stats
-                d = (d - mu) / sd
-            score += _robust_z(-d)
+                d = (d - mu) / sd if rows is None else (d - mu[rows]) / sd[rows]
+            z = _robust_z(-d)
+            if rows is None:
+                score += z
+            else:
+                full = np.full(len(score), z.min())
+                full[rows] = z
+                score += full
         return score
 
     def verify_candidates(self, q: Query, score: np.ndarray, k: int | None = None) -> dict[int, Verification]:
@@ -222,11 +256,40 @@ class Localizer:
         if len(q.features) < self.map.config.match.min_inliers:
             return {}
         out = {}
+        cfg = self._verify_config
+        q_groups = None
+        if self.guided:
+            q_groups = self._vocabulary.ancestors(self._query_words(q), self._group_level)
         for r in rows:
-            f = self._features_of(int(self.node_ids[r]))
-            if len(f) >= self.map.config.match.min_inliers:
-                out[int(r)] = verify(q.features, f, self.map.config.match)
+            node = int(self.node_ids[r])
+            f = self._features_of(node)
+            if len(f) < cfg.min_inliers:
+                continue
+            matches = None
+            if q_groups is not None:
+                groups = self._vocabulary.ancestors(self._words_of_node(node, f), self._group_level)
+                matches = match_descriptors_grouped(q.features, f, q_groups, groups, cfg, self._max_distance)
+            out[int(r)] = verify(q.features, f, cfg, matches=matches)
         return out
+
+    @property
+    def _max_distance(self) -> float | None:
+        return float(self.config.guided_max_hamming) if self._vocabulary.binary else None
+
+    def _words_of_node(self, node: int, f: Features) -> np.ndarray:
+        """The vocabulary word of each feature of ``node``: from the index (stored at indexing time),
+        else quantised now and kept in a bounded cache (maps indexed before words were stored)."""
+        words = self.map.index.words_of_features(node) if self.map.index is not None else None
+        if words is not None and len(words) == len(f):
+            return words
+        cached = self._node_words.get(node)
+        if cached is None or len(cached) != len(f):
+            cached = self._node_words[node] = self._vocabulary.quantize(f.descriptors)
+            if len(self._node_words) > 4096:
+                self._node_words.popitem(last=False)
+        else:
+            self._node_words.move_to_end(node)
+        return cached
 
     def total_score(self, q: Query, k: int | None = None) -> tuple[np.ndarray, dict[int, Verification]]:
         """Appearance score plus the inlier bonus of the verified shortlist."""

@@ -1,7 +1,9 @@
 """Descriptor matching with the right norm, epipolar (RANSAC) verification and a similarity score.
 
 ``match_descriptors`` keeps nearest neighbours that pass Lowe's ratio test and, optionally, are
-mutual. ``verify`` fits a fundamental matrix with OpenCV's USAC/MAGSAC and counts inliers: the
+mutual. ``match_descriptors_grouped`` does the same among descriptors of the same group only (the
+vocabulary-tree node they fall under, as ORB-SLAM's bag-of-words guided matching): ~1/G of the
+distance evaluations for G groups, which is what makes verifying a shortlist cheap. ``verify`` fits a fundamental matrix with OpenCV's USAC/MAGSAC and counts inliers: the
 number of *verified matches* is what keyframing, loop closure and localization decide on.
 """
 
@@ -14,9 +16,9 @@ import numpy as np
 
 from topomap.config import MatchConfig
 from topomap.errors import ConfigError
-from topomap.features import Features
+from topomap.features import Features, hamming
 
-__all__ = ["Matches", "Verification", "match_descriptors", "verify", "MIN_MODEL_POINTS"]
+__all__ = ["Matches", "Verification", "match_descriptors", "match_descriptors_grouped", "verify", "MIN_MODEL_POINTS"]
 
 #: Correspondences the fundamental-matrix estimator needs.
 MIN_MODEL_POINTS = 8
@@ -112,12 +114,92 @@ def match_descriptors(a: Features, b: Features, config: MatchConfig = MatchConfi
     return Matches(ia_arr[keep], ib_arr[keep], dist_arr[keep])
 
 
+def _pair_distances(da: np.ndarray, db: np.ndarray, binary: bool) -> np.ndarray:
+    """Row-wise distances of two equally long (P, D) descriptor arrays -> (P,) float32."""
+    if binary:
+        return hamming(da, db).astype(np.float32)
+    diff = da.astype(np.float32) - db.astype(np.float32)
+    return np.sqrt(np.einsum("pd,pd->p", diff, diff))
+
+
+def _segment_best_two(d: np.ndarray, seg_of: np.ndarray, starts: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per segment (pairs ``starts[s]:starts[s+1]`` of row ``seg_of``): best distance, its pair index
+    and the second-best distance (inf where a segment has one pair, nan-free); rows without pairs get inf."""
+    best = np.full(n, np.inf, np.float32)
+    second = np.full(n, np.inf, np.float32)
+    arg = np.full(n, -1, np.int64)
+    if len(d) == 0:
+        return best, arg, second
+    rows = seg_of[starts]
+    b = np.minimum.reduceat(d, starts)
+    best[rows] = b
+    hit = np.flatnonzero(d == np.repeat(b, np.diff(np.append(starts, len(d)))))
+    first = hit[np.concatenate(([True], seg_of[hit][1:] != seg_of[hit][:-1]))]  # first minimum of each segment
+    arg[seg_of[first]] = first
+    d2 = d.copy()
+    d2[first] = np.inf
+    second[rows] = np.minimum.reduceat(d2, starts)
+    return best, arg, second
+
+
+def match_descriptors_grouped(a: Features, b: Features, groups_a: np.ndarray, groups_b: np.ndarray,
+                              config: MatchConfig = MatchConfig(), max_distance: float | None = None) -> Matches:
+    """Ratio-test (and optionally mutual) nearest neighbours, searched only among descriptors of the
+    same group (``groups_a`` (Na,), ``groups_b`` (Nb,) non-negative ints, e.g. vocabulary-tree
+    nodes). ``max_distance`` also bounds the best distance (a group may hold a single candidate, where
+    the ratio test cannot judge). Vectorised over all same-group pairs: written here because OpenCV's
+    matchers have no grouping and a per-group loop in Python costs more than it saves."""
+    _check_pair(a, b)
+    groups_a, groups_b = np.asarray(groups_a, np.int64), np.asarray(groups_b, np.int64)
+    if len(groups_a) != len(a) or len(groups_b) != len(b):
+        raise ValueError("one group per descriptor is needed")
+    if len(a) < 2 or len(b) < 2:
+        return Matches.empty()
+    n_groups = int(max(groups_a.max(), groups_b.max())) + 1
+    order_b = np.argsort(groups_b, kind="stable")
+    count_b = np.bincount(groups_b, minlength=n_groups)
+    start_b = np.cumsum(count_b) - count_b
+    c = count_b[groups_a]  # candidates of each A row
+    total = int(c.sum())
+    if total == 0:
+        return Matches.empty()
+    seg_start = np.cumsum(c) - c  # first pair of each A row
+    ia = np.repeat(np.arange(len(a)), c)
+    within = np.arange(total) - np.repeat(seg_start, c)
+    ib = order_b[np.repeat(start_b[groups_a], c) + within]
+    d = _pair_distances(a.descriptors[ia], b.descriptors[ib], a.detector.binary)
+    nonempty = np.flatnonzero(c > 0)
+    best, arg, second = _segment_best_two(d, ia, seg_start[nonempty], len(a))
+    ok = np.isfinite(best) & (best < config.ratio * second)
+    if max_distance is not None:
+        ok &= best <= max_distance
+    rows_a = np.flatnonzero(ok)
+    if len(rows_a) == 0:
+        return Matches.empty()
+    pair = arg[rows_a]
+    ia_arr, ib_arr, dist_arr = ia[pair].astype(np.int32), ib[pair].astype(np.int32), best[rows_a]
+    if config.mutual:
+        # the B descriptor's nearest A descriptor (among its group, i.e. the same pairs) must be this one
+        best_b = np.full(len(b), np.inf, np.float32)
+        np.minimum.at(best_b, ib, d)
+        keep = dist_arr <= best_b[ib_arr]
+        ia_arr, ib_arr, dist_arr = ia_arr[keep], ib_arr[keep], dist_arr[keep]
+    order = np.lexsort((ia_arr, dist_arr))
+    _, first = np.unique(ib_arr[order], return_index=True)
+    keep = np.sort(order[first])
+    return Matches(ia_arr[keep], ib_arr[keep], dist_arr[keep])
+
+
+_USAC = {"magsac": cv2.USAC_MAGSAC, "prosac": cv2.USAC_PROSAC}
+
+
 def _fundamental(pa: np.ndarray, pb: np.ndarray, config: MatchConfig) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """MAGSAC fundamental matrix; plain RANSAC where USAC trips over degenerate data."""
+    """USAC fundamental matrix (``config.ransac_method``; PROSAC expects the rows best match first);
+    plain RANSAC where USAC trips over degenerate data."""
     cv2.setRNGSeed(config.seed)
     try:
         return cv2.findFundamentalMat(
-            pa, pb, cv2.USAC_MAGSAC, config.ransac_px, config.ransac_confidence, config.ransac_max_iters
+            pa, pb, _USAC[config.ransac_method], config.ransac_px, config.ransac_confidence, config.ransac_max_iters
         )
     except cv2.error:
         # OpenCV 4.x USAC can fail an internal assertion on near-degenerate samples
@@ -135,6 +217,9 @@ def verify(a: Features, b: Features, config: MatchConfig = MatchConfig(), matche
     none = np.zeros(len(matches), bool)
     if len(matches) < max(MIN_MODEL_POINTS, config.min_inliers):
         return Verification(matches, none, None, 0.0, 0.0)
+    if config.ransac_method == "prosac":  # PROSAC samples the best-ranked matches first
+        order = np.argsort(matches.distance, kind="stable")
+        matches = Matches(matches.ia[order], matches.ib[order], matches.distance[order])
     pa = a.keypoints[matches.ia].astype(np.float64)
     pb = b.keypoints[matches.ib].astype(np.float64)
     F, mask = _fundamental(pa, pb, config)
