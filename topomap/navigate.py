@@ -23,7 +23,11 @@ or when, aligned and close, it stops making progress (``settle_*`` in
 and in both cases only if the image agrees: the verified matches with the goal keyframe have moved
 less than ``arrive_image_error`` of the image width. Facing a single wall the planar relative pose is
 ambiguous, so the pose estimate alone cannot certify arrival.
-The disturbance estimates carry from one subgoal to the next.
+The disturbance estimates carry from one subgoal to the next, and so does the heading: at a switch
+the heading relative to the new subgoal is predicted from the heading relative to the old one and
+the two keyframes' relative heading (their images' planar geometry), so a vehicle that does not
+see the new subgoal yet — at a corner the next keyframe may lie a turn away — turns toward it
+instead of holding still (:meth:`~topomap.servo.servo.AppearanceServo.reacquire_command`).
 
 Recovery. After ``lost_after_steps`` periods without usable geometry, or when a subgoal is not
 reached within ``subgoal_timeout_s``, the navigator stops, penalises the edge it was following,
@@ -173,6 +177,7 @@ class Navigator:
         self._neighbour_sad: dict[int, float] = {}
         self._away: dict[int, np.ndarray | None] = {}
         self._geometry: dict[int, tuple[tuple[float, ...], float | None]] = {}
+        self._edge_heading: dict[tuple[int, int], float] = {}
         height = self.config.camera_height_m
         self._camera_height_m = height if height is not None else getattr(robot, "camera_height_m", None)
 
@@ -258,13 +263,14 @@ class Navigator:
             yield NavEvent(kind, self._time, str(f), route=out.route)
         out.duration_s = self._time
 
-    def _target(self, nodes: list[int], i: int) -> None:
-        """Point the servo at ``nodes[i]``: new references, docking radius of a waypoint or of the goal."""
+    def _target(self, nodes: list[int], i: int, heading_prior: float | None = None) -> None:
+        """Point the servo at ``nodes[i]``: new references, docking radius of a waypoint or of the
+        goal; ``heading_prior``: the predicted heading relative to it [rad], if any."""
         # the side of the subgoal camera the robot comes from: behind it (x < 0) when following the
         # taught direction, in front of it when driving the route backwards
         self._approach_side: float | None = None
         normals, scale = self._goal_geometry(nodes[i])
-        self.servo.retarget(normals, scale if i == len(nodes) - 1 else None)  # metric at the goal
+        self.servo.retarget(normals, scale if i == len(nodes) - 1 else None, heading_prior)  # metric at the goal
         self.servo.reconfigure(**(self._goal_servo if i == len(nodes) - 1 else self._waypoint_servo))
 
     def _follow(self, route: Route, goal: int, budget_s: float) -> Iterator[NavEvent]:
@@ -316,11 +322,14 @@ class Navigator:
             else:
                 reason = self._switch_reason(q, s, nodes[i + 1], v)
                 if reason:
+                    # heading relative to the next subgoal = relative to this one + this one's relative to it
+                    here = s.heading_error_rad if math.isfinite(s.heading_error_rad) else s.disturbance.theta
+                    prior = here + self._keyframe_heading(sub, nodes[i + 1]) if math.isfinite(here) else None
                     i += 1
                     out.subgoals_reached += 1
                     since_switch = self._time
                     lost = 0
-                    self._target(nodes, i)
+                    self._target(nodes, i, prior if prior is not None and math.isfinite(prior) else None)
                     yield NavEvent(EventKind.SUBGOAL, self._time, f"reached {sub} ({reason}); next {nodes[i]}",
                                    subgoal=nodes[i], route=tuple(nodes))
                     continue
@@ -387,6 +396,21 @@ class Navigator:
                 scale = float(np.clip(np.median(scales), nominal / 3.0, 3.0 * nominal))
             self._geometry[node] = (tuple(normals), scale)
         return self._geometry[node]
+
+    def _keyframe_heading(self, a: int, b: int) -> float:
+        """Heading of keyframe ``a`` relative to keyframe ``b`` from their images (cached) [rad]; NaN
+        when their matches give no planar pose."""
+        if (a, b) not in self._edge_heading:
+            fa, fb = self.map.nodes[a].features, self.map.nodes[b].features
+            v = verify(fa, fb, self.map.config.match)
+            theta = math.nan
+            if v.inliers >= self.map.config.match.min_inliers:
+                m = v.inlier_matches
+                pose = relative_pose(fa.keypoints[m.ia], fb.keypoints[m.ib], self.map.camera, self.servo.config.geometry)
+                if pose.status in (PoseStatus.OK, PoseStatus.PURE_ROTATION):
+                    theta = pose.theta
+            self._edge_heading[(a, b)] = theta
+        return self._edge_heading[(a, b)]
 
     def _image_agrees(self, q: Query, v: Verification, node: int, flow_bound: float | None = None) -> bool:
         """The current image shows the node's keyframe view: verified matches barely moved

@@ -20,6 +20,8 @@ from topomap.servo.geometry import (
     decompose_planar_homography,
     essential_design_matrix,
     planar_essential,
+    ransac_iterations,
+    ransac_planar_essential,
     ransac_planar_homography,
     relative_pose,
     relative_pose_normalized,
@@ -347,3 +349,18 @@ def test_plane_solutions_can_be_switched_off():
     cp, gp, _ = matches(WALL, cur, WALL_GOAL, rng, noise_px=0.5, max_points=200)
     assert relative_pose(cp, gp, CAMERA).plane_solutions
     assert relative_pose(cp, gp, CAMERA, RelativePoseConfig(plane_inlier_fraction=1.0)).plane_solutions == ()
+
+
+def test_ransac_iterations_never_divide_by_zero():
+    assert ransac_iterations(1.0, 3, 0.999, 500) == 0
+    assert ransac_iterations(0.5, 3, 0.999, 500) == 52  # log(0.001) / log(1 - 1/8)
+    for w in (0.0, 1e-7, 1e-300):  # no inliers, or a sample probability below float resolution
+        assert ransac_iterations(w, 3, 0.999, 500) == 500
+
+
+def test_planar_essential_ransac_on_pure_outliers_returns_without_error():
+    """Found by the navigation benchmark on a world textured with other photographs: a hypothesis
+    with no inlier at all used to divide by log(1) = 0."""
+    rng = np.random.default_rng(3)
+    goal, cur = rng.uniform(-1, 1, (12, 2)), rng.uniform(-1, 1, (12, 2)) * 40.0
+    ransac_planar_essential(goal, cur, 1e-4, seed=0)  # must not raise

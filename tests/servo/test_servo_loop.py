@@ -146,3 +146,18 @@ def test_blind_servo_turns_back_toward_the_goal_heading():
     aligned = DisturbanceEstimate(d_omega=0.1, d_omega_std=0.01, theta=0.0, kappa=1 / 3.0)
     assert AppearanceServo("omni").reacquire_command(aligned).omega == pytest.approx(-0.1)  # hold only
     assert AppearanceServo("omni", servo_preset("uncompensated")).reacquire_command(est) == STOP
+
+
+def test_retarget_with_a_heading_prior_turns_toward_an_unseen_goal():
+    """A new subgoal out of view (a corner): with the predicted heading the blind servo turns toward
+    it; without one it can only hold."""
+    servo = AppearanceServo("unicycle")
+    servo.observer.update(0.1, None, 0.2, None)
+    for _ in range(20):  # the old goal seen steadily: d_omega known (zero)
+        servo.observer.update(0.1, Command(), 0.2, None)
+    servo.retarget(heading_prior_rad=0.6)
+    none = np.zeros((0, 2))
+    out = servo.step(none, none, CAMERA, 0.1, Command())
+    assert out.status is ServoStatus.LOST and out.command.omega < -0.3
+    servo.retarget()
+    assert servo.step(none, none, CAMERA, 0.1, Command()).command.omega == pytest.approx(0.0, abs=0.05)

@@ -47,6 +47,34 @@ def test_retarget_keeps_the_disturbance_and_takes_the_new_heading():
     assert est.d_omega == pytest.approx(0.1, abs=0.015)
 
 
+def test_a_heading_prior_is_dead_reckoned_then_replaced_by_the_first_measurement():
+    est, obs = run_heading(0.1, 0.0)
+    obs.reset_target(theta_prior=0.7)  # e.g. the old goal's heading composed with the keyframes' relative heading
+    est = obs.estimate
+    assert est.theta == pytest.approx(0.7) and est.ready  # the disturbance estimate stays usable
+    for _ in range(10):  # blind: 1 s turning at -0.5 rad/s under d_omega 0.1
+        est = obs.update(0.1, Command(0.0, 0.0, -0.5), None, None)
+    assert est.theta == pytest.approx(0.7 + (-0.5 + 0.1) * 1.0, abs=0.02)
+    est = obs.update(0.1, Command(), -0.9, None)  # the real heading, far from the prediction
+    assert est.theta == pytest.approx(-0.9)  # replaced, not averaged and not gated away
+    assert est.d_omega == pytest.approx(0.1, abs=0.015)  # the prior's error is not a disturbance
+    obs.reset_target(theta_prior=math.nan)
+    assert math.isnan(obs.estimate.theta)
+
+
+def test_a_prior_changes_nothing_once_the_goal_is_seen():
+    """Seen at once, the new goal gives exactly the estimates it gives without a prior."""
+    import copy
+
+    _, obs = run_heading(0.1, 0.2)
+    a, b = copy.deepcopy(obs), copy.deepcopy(obs)
+    a.reset_target()
+    b.reset_target(theta_prior=0.5)
+    for k in range(5):
+        cmd, pos = Command(0.1, 0.0, 0.2), np.array([-1.0 + 0.03 * k, 0.1])
+        assert a.update(0.1, cmd, 0.2 + 0.01 * k, pos) == b.update(0.1, cmd, 0.2 + 0.01 * k, pos)
+
+
 def test_a_single_wrong_heading_is_rejected_but_a_persistent_change_is_accepted():
     est, obs = run_heading(0.0, 0.0)
     th = est.theta

@@ -81,6 +81,7 @@ __all__ = [
     "choose_plane_solution",
     "wall_normals",
     "planar_homography_rows",
+    "ransac_iterations",
     "ransac_planar_homography",
     "decompose_planar_homography",
     "scale_convention",
@@ -311,6 +312,18 @@ def _reproj_sq_batch(theta: np.ndarray, t: np.ndarray, goal_n: np.ndarray, cur_n
     return rx * rx + ry * ry
 
 
+def ransac_iterations(inlier_fraction: float, sample_size: int, confidence: float, max_iters: int) -> int:
+    """Hypotheses needed to draw one all-inlier sample with ``confidence`` (Fischler & Bolles),
+    capped at ``max_iters``; no inliers yet (or too few for float precision) -> ``max_iters``."""
+    if inlier_fraction >= 1.0:
+        return 0
+    p_good = inlier_fraction**sample_size
+    miss = math.log1p(-p_good) if p_good > 0.0 else 0.0
+    if miss == 0.0:
+        return max_iters
+    return int(min(max_iters, math.ceil(math.log(1.0 - confidence) / miss)))
+
+
 def ransac_planar_essential(
     goal_n: np.ndarray,
     cur_n: np.ndarray,
@@ -354,7 +367,7 @@ def ransac_planar_essential(
         if cost[k] < best_cost:
             best_cost, best = float(cost[k]), (theta[k], t[k])
             w = float((d2[k] < thr2).mean())
-            needed = 0 if w >= 1.0 else int(math.ceil(math.log(1 - confidence) / math.log(max(1e-12, 1 - w**3))))
+            needed = ransac_iterations(w, 3, confidence, max_iters)
     # local optimisation: linear refit of E on the inliers, kept if it scores better
     for _ in range(2):
         mask = _reproj_sq_batch(np.array([best[0]]), best[1][None], goal_n, cur_n)[0] < thr2

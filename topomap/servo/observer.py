@@ -73,6 +73,7 @@ class DisturbanceObserver:
         self._x = np.array([math.nan, 0.0])
         self._P = np.diag([1.0, 0.2**2])
         self._has_theta = False
+        self._prior_only = False  # theta is a prediction for a new goal, not yet measured
         self._rejected = 0
         # forward filter: p = [kappa, mu_f, mu_h]
         self._p = np.array([self.kappa0, 0.0, 0.0])
@@ -81,14 +82,23 @@ class DisturbanceObserver:
         self._last_theta: float | None = None
 
     # ------------------------------------------------------------------ lifecycle
-    def reset_target(self) -> None:
-        """A new goal image: heading and position references jump; the disturbances stay."""
+    def reset_target(self, theta_prior: float | None = None) -> None:
+        """A new goal image: heading and position references jump; the disturbances stay.
+
+        ``theta_prior``: the heading relative to the new goal predicted without its image (e.g. the
+        heading relative to the previous goal composed with the two goal images' relative heading).
+        It is dead-reckoned like a measured one until the first measurement, which replaces it
+        (it never updates d_omega: its error is not the disturbance's)."""
         self._has_theta = False
         self._x[0] = math.nan
         self._P[0, :] = self._P[:, 0] = 0.0
         self._P[0, 0] = 1.0
         self._last_pos, self._last_theta = None, None
         self._rejected = 0
+        self._prior_only = False
+        if theta_prior is not None and math.isfinite(theta_prior):
+            self._x[0] = _wrap(float(theta_prior))
+            self._has_theta = self._prior_only = True
 
     # ------------------------------------------------------------------ one step
     def update(
@@ -102,13 +112,18 @@ class DisturbanceObserver:
         the measured relative heading ``theta`` [rad] and scaled position ``position_s`` (2,) (None
         when the images did not give them)."""
         cfg = self.cfg
-        if self._has_theta and applied is not None and dt > 0:
+        if self._prior_only and applied is not None and dt > 0:
+            # a predicted heading: dead-reckoned, the covariances untouched (the first measurement
+            # replaces it and then everything is as if there had been no prior)
+            self._x[0] = _wrap(self._x[0] + (applied.omega + self._x[1]) * dt)
+        elif self._has_theta and applied is not None and dt > 0:
             F = np.array([[1.0, dt], [0.0, 1.0]])
             self._x = F @ self._x + np.array([applied.omega * dt, 0.0])
             Q = np.diag([(0.2 * cfg.heading_noise_rad) ** 2 * dt, cfg.d_omega_walk**2 * dt])
             self._P = F @ self._P @ F.T + Q
         if theta is not None and math.isfinite(theta):
-            if not self._has_theta:
+            if not self._has_theta or self._prior_only:
+                self._prior_only = False
                 self._x[0] = theta
                 self._P[0, 0] = cfg.heading_noise_rad**2
                 self._P[0, 1] = self._P[1, 0] = 0.0

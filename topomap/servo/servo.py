@@ -88,7 +88,7 @@ class AppearanceServo:
         self.scale_m = self.config.nominal_scale_m  # metres per scaled unit at this goal (best guess)
 
     # ------------------------------------------------------------------ lifecycle
-    def retarget(self, wall_normals=(), scale_m: float | None = None) -> None:
+    def retarget(self, wall_normals=(), scale_m: float | None = None, heading_prior_rad: float | None = None) -> None:
         """A new goal image: restart pose references, keep the disturbance estimates.
 
         ``wall_normals``: angles [rad] of the goal wall's normal that other views of the goal image
@@ -96,12 +96,14 @@ class AppearanceServo:
         between the two poses the images allow. ``scale_m``: the goal's scale (metres per scaled
         unit, e.g. its median depth) when known; it turns the estimated distance into metres
         (``position_error_m``, convergence) and sets the laws' metric radii and gains; default
-        ``nominal_scale_m``.
+        ``nominal_scale_m``. ``heading_prior_rad``: the heading relative to the new goal predicted
+        from the images so far (see :meth:`DisturbanceObserver.reset_target`): while the new goal's
+        image does not match yet, :meth:`reacquire_command` turns toward it instead of holding.
 
         The unicycle keeps its along-track integral (a forward disturbance lives in the vehicle
         frame); the omnidirectional integral is expressed in the old goal's frame and restarts.
         """
-        self.observer.reset_target()
+        self.observer.reset_target(heading_prior_rad)
         self.wall_normals = tuple(float(n) for n in wall_normals)
         self.scale_m = float(scale_m) if scale_m is not None else self.config.nominal_scale_m
         keep = self.state.integral if self.vehicle is VehicleKind.UNICYCLE else (0.0, 0.0)
