@@ -228,8 +228,8 @@ def main() -> None:
         bow = rng.standard_normal(n)
         t0 = time.perf_counter()
         for _ in range(5):
-            rows = _top_rows(bow, m_thumb) if n > m_thumb else slice(None)
-            _robust_z(-sad(q_desc, descs[rows]).astype(np.float64))
+            best = _top_rows(bow, m_thumb) if n > m_thumb else slice(None)
+            _robust_z(-sad(q_desc, descs[best]).astype(np.float64))
         fused_ms[n] = (time.perf_counter() - t0) / 5 * 1e3
         t0 = time.perf_counter()
         for _ in range(5):
