@@ -347,10 +347,7 @@ class ServoConfig:
     compensate: bool = True  # cancel d_omega_hat and use integral action; False = nominal laws
     # near the goal a unicycle stops steering by the bearing (undefined at the goal) and aligns
     dock_radius_m: float = 0.06  # enter alignment inside this distance [m] ...
-    undock_radius_m: float = 0.25  # ... and leave it beyond this one [m] ...
-    # ... for this long [s]: at the goal the baseline is small and single pose estimates jump (seen
-    # 0.02 -> 0.45 -> 0.13 m at a corner keyframe); one of them must not send the vehicle driving
-    undock_time_s: float = 1.0
+    undock_radius_m: float = 0.25  # ... and leave it beyond this one [m]
     position_tol_m: float = 0.03  # converged: estimated distance below this [m] ...
     heading_tol_deg: float = 1.5  # ... and |heading error| below this [deg]
 
@@ -358,8 +355,7 @@ class ServoConfig:
         for name in ("max_speed_mps", "max_turn_rps", "nominal_scale_m", "gamma", "k_alpha", "h", "k_p", "k_theta"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"servo {name}={getattr(self, name)} must be positive")
-        for name in ("k_i", "integral_limit_mps", "integral_zone_m", "dock_radius_m", "position_tol_m", "heading_tol_deg",
-                     "undock_time_s"):
+        for name in ("k_i", "integral_limit_mps", "integral_zone_m", "dock_radius_m", "position_tol_m", "heading_tol_deg"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"servo {name}={getattr(self, name)} must not be negative")
         if self.unicycle_law not in ("aicardi", "scale_free"):

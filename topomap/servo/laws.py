@@ -45,7 +45,6 @@ class LawState:
     docking radius and only aligns its heading (hysteresis between ``dock_radius_m`` and
     ``undock_radius_m``). ``reverse``: the unicycle is in front of the goal and backs into it.
     ``best_m, stall_s``: progress bookkeeping that lets the unicycle integrate when it stalls.
-    ``far_s``: while aligning, how long the estimate has stayed beyond the undock radius [s].
     """
 
     integral: tuple[float, float] = (0.0, 0.0)
@@ -53,7 +52,6 @@ class LawState:
     reverse: bool | None = None  # unicycle approaching backwards (None: not decided yet)
     best_m: float = math.inf  # unicycle: smallest estimated distance so far [m] ...
     stall_s: float = 0.0  # ... and the time since it last improved by stall_progress_m [s]
-    far_s: float = 0.0
 
 
 def aicardi_coordinates(x_s: float, z_s: float, theta: float) -> tuple[float, float, float]:
@@ -149,30 +147,20 @@ def unicycle_law(
     "needs integral or adaptive action"). It runs while aligning, and within ``integral_zone_m``
     when the distance has not improved by ``stall_progress_m`` for ``stall_time_s`` (the vehicle is
     held off by a forward disturbance); otherwise it is held (and still applied): conditional
-    integration, so it does not wind up during the approach. Alignment ends when the estimate stays
-    beyond ``undock_radius_m`` for ``undock_time_s``; until then such estimates move nothing along
-    the track (the heading is still aligned).
+    integration, so it does not wind up during the approach.
     """
     lam0 = cfg.nominal_scale_m
     band = cfg.undock_radius_m
-    dist_m = lam0 * math.hypot(x_s, z_s)
-    far_s = 0.0
-    if state.aligning and dist_m >= band:
-        far_s = state.far_s + dt  # leave alignment only when the distance persists (undock_time_s)
-        aligning = far_s < cfg.undock_time_s
-    else:
-        aligning = dist_m < (band if state.aligning else cfg.dock_radius_m)
-    doubtful = aligning and far_s > 0.0  # an estimate beyond the undock radius, not trusted yet
     reverse = state.reverse
     if reverse is None:
         reverse = x_s > 0
-    elif doubtful:
-        pass
     elif reverse and lam0 * x_s < -band:
         reverse = False
     elif not reverse and lam0 * x_s > band:
         reverse = True
-    eps = 0.0 if doubtful else along_track_error(x_s, z_s, theta)
+    dist_m = lam0 * math.hypot(x_s, z_s)
+    aligning = dist_m < (cfg.undock_radius_m if state.aligning else cfg.dock_radius_m)
+    eps = along_track_error(x_s, z_s, theta)
     ki = cfg.k_i if cfg.compensate else 0.0
     integ = state.integral[0]
     best_m, stall_s = state.best_m, state.stall_s
@@ -195,7 +183,7 @@ def unicycle_law(
             e_s, alpha, theta_a, cfg, d_omega_hat=d_omega_hat, kappa_hat=kap, mu_hat=sgn * mu_hat, v_extra=sgn * v_i
         )
         cmd = Command(sgn * c.v_f, 0.0, c.omega)
-    return cmd, LawState((integ, 0.0), aligning, reverse, best_m, stall_s, far_s if aligning else 0.0)
+    return cmd, LawState((integ, 0.0), aligning, reverse, best_m, stall_s)
 
 
 def omni_law(
