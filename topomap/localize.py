@@ -197,13 +197,15 @@ class Localizer:
                                                   ransac_max_iters=self.config.verify_max_iters)
 
     # ------------------------------------------------------------------ pieces
-    def prepare(self, image: np.ndarray) -> Query:
-        """Any image (grey/colour, any depth and size) -> :class:`Query` at the map's resolution."""
+    def prepare(self, image: np.ndarray, *, words: bool = True) -> Query:
+        """Any image (grey/colour, any depth and size) -> :class:`Query` at the map's resolution;
+        ``words=False`` skips the vocabulary words (only global localization needs them; a query
+        without them is quantised when it is localized)."""
         gray = to_gray_u8(image)
         work = to_working_resolution(gray, self.map.working_size)
         feats = extract(work, self.map.config.features)  # verification needs them in every mode
         desc = thumbnail_descriptor(work, self.descriptor_size, self.descriptor_patch) if self.use_thumbnail else np.zeros(0, np.float32)
-        if self.use_bow or self.guided:
+        if words and (self.use_bow or self.guided):
             return Query(work, feats, desc, self._vocabulary.quantize(feats.descriptors), self._vocabulary)
         return Query(work, feats, desc)
 

@@ -3,8 +3,9 @@
 ``match_descriptors`` keeps nearest neighbours that pass Lowe's ratio test and, optionally, are
 mutual. ``match_descriptors_grouped`` does the same among descriptors of the same group only (the
 vocabulary-tree node they fall under, as ORB-SLAM's bag-of-words guided matching): ~1/G of the
-distance evaluations for G groups, which is what makes verifying a shortlist cheap. ``verify`` fits a fundamental matrix with OpenCV's USAC/MAGSAC and counts inliers: the
-number of *verified matches* is what keyframing, loop closure and localization decide on.
+distance evaluations for G groups, which is what makes verifying a shortlist cheap. ``verify`` fits
+a fundamental matrix with OpenCV's USAC (MAGSAC or PROSAC) and counts inliers: the number of
+*verified matches* is what keyframing, loop closure and localization decide on.
 """
 
 from __future__ import annotations
@@ -107,11 +108,15 @@ def match_descriptors(a: Features, b: Features, config: MatchConfig = MatchConfi
         back_idx = np.array([m.trainIdx for m in back], np.int32)
         keep = back_idx == ia_arr
         ia_arr, ib_arr, dist_arr = ia_arr[keep], ib_arr[keep], dist_arr[keep]
-    # one A keypoint per B keypoint (the closest), so inlier counts are not inflated
-    order = np.lexsort((ia_arr, dist_arr))
-    _, first = np.unique(ib_arr[order], return_index=True)
+    return _one_to_one(ia_arr, ib_arr, dist_arr)
+
+
+def _one_to_one(ia: np.ndarray, ib: np.ndarray, dist: np.ndarray) -> Matches:
+    """One A keypoint per B keypoint (the closest), so inlier counts are not inflated."""
+    order = np.lexsort((ia, dist))
+    _, first = np.unique(ib[order], return_index=True)
     keep = np.sort(order[first])
-    return Matches(ia_arr[keep], ib_arr[keep], dist_arr[keep])
+    return Matches(ia[keep], ib[keep], dist[keep])
 
 
 def _pair_distances(da: np.ndarray, db: np.ndarray, binary: bool) -> np.ndarray:
@@ -184,10 +189,7 @@ def match_descriptors_grouped(a: Features, b: Features, groups_a: np.ndarray, gr
         np.minimum.at(best_b, ib, d)
         keep = dist_arr <= best_b[ib_arr]
         ia_arr, ib_arr, dist_arr = ia_arr[keep], ib_arr[keep], dist_arr[keep]
-    order = np.lexsort((ia_arr, dist_arr))
-    _, first = np.unique(ib_arr[order], return_index=True)
-    keep = np.sort(order[first])
-    return Matches(ia_arr[keep], ib_arr[keep], dist_arr[keep])
+    return _one_to_one(ia_arr, ib_arr, dist_arr)
 
 
 _USAC = {"magsac": cv2.USAC_MAGSAC, "prosac": cv2.USAC_PROSAC}
@@ -218,8 +220,7 @@ def verify(a: Features, b: Features, config: MatchConfig = MatchConfig(), matche
     if len(matches) < max(MIN_MODEL_POINTS, config.min_inliers):
         return Verification(matches, none, None, 0.0, 0.0)
     if config.ransac_method == "prosac":  # PROSAC samples the best-ranked matches first
-        order = np.argsort(matches.distance, kind="stable")
-        matches = Matches(matches.ia[order], matches.ib[order], matches.distance[order])
+        matches = matches.subset(np.argsort(matches.distance, kind="stable"))
     pa = a.keypoints[matches.ia].astype(np.float64)
     pb = b.keypoints[matches.ib].astype(np.float64)
     F, mask = _fundamental(pa, pb, config)

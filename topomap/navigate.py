@@ -55,7 +55,7 @@ from topomap.matching import Verification, verify
 from topomap.retrieval import sad
 from topomap.motion import STOP, Command, VehicleKind, vehicle_kind
 from topomap.plan import Planner, Route
-from topomap.servo.geometry import PoseStatus, relative_pose, wall_normals
+from topomap.servo.geometry import PoseStatus, RelativePose, relative_pose, wall_normals
 from topomap.servo.servo import AppearanceServo, ServoOutput, ServoStatus
 
 __all__ = ["RobotLike", "NavStatus", "EventKind", "NavEvent", "NavOutcome", "Navigator"]
@@ -177,14 +177,15 @@ class Navigator:
         self._neighbour_sad: dict[int, float] = {}
         self._away: dict[int, np.ndarray | None] = {}
         self._geometry: dict[int, tuple[tuple[float, ...], float | None]] = {}
-        self._edge_heading: dict[tuple[int, int], float] = {}
+        self._pair_pose: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, RelativePose] | None] = {}
         height = self.config.camera_height_m
         self._camera_height_m = height if height is not None else getattr(robot, "camera_height_m", None)
 
     # ------------------------------------------------------------------ robot I/O
-    def _look(self) -> tuple[np.ndarray, Query]:
+    def _look(self, localizing: bool = False) -> tuple[np.ndarray, Query]:
         image = self.robot.render()
-        return image, self.localizer.prepare(image)
+        # the vocabulary words only serve global localization, not the servo's matching each period
+        return image, self.localizer.prepare(image, words=localizing)
 
     def _move(self, command: Command) -> None:
         dt = self.config.control_period_s
@@ -208,7 +209,7 @@ class Navigator:
         best: Localization | None = None
         turned = 0.0
         while True:
-            image, q = self._look()
+            image, q = self._look(localizing=True)
             loc = self.localizer.localize_query(q)
             if best is None or loc.confidence > best.confidence:
                 best = loc
@@ -371,18 +372,15 @@ class Navigator:
         neighbour's position measured in both conventions, camera height (floor points) over median
         depth; the median of those, clipped to 1/3..3 times the nominal scale."""
         if node not in self._geometry:
-            goal = self.map.nodes[node].features
             geo = self.servo.config.geometry
             floor, plain = replace(geo, scale="camera_height"), replace(geo, plane_inlier_fraction=1.0)
             normals: list[float] = []
             scales: list[float] = []
             for nb in self.map.neighbours(node):
-                f = self.map.nodes[nb].features
-                v = verify(f, goal, self.map.config.match)
-                if v.inliers < self.map.config.match.min_inliers:
+                pair = self._keyframe_pose(nb, node)
+                if pair is None:
                     continue
-                cur, dst = f.keypoints[v.inlier_matches.ia], goal.keypoints[v.inlier_matches.ib]
-                pose = relative_pose(cur, dst, self.map.camera, geo)
+                cur, dst, pose = pair
                 normals += wall_normals(pose, geo.plane_min_t_over_d)
                 if self._camera_height_m is not None:
                     # without plane solutions the pose is the essential matrix's already
@@ -397,20 +395,27 @@ class Navigator:
             self._geometry[node] = (tuple(normals), scale)
         return self._geometry[node]
 
-    def _keyframe_heading(self, a: int, b: int) -> float:
-        """Heading of keyframe ``a`` relative to keyframe ``b`` from their images (cached) [rad]; NaN
-        when their matches give no planar pose."""
-        if (a, b) not in self._edge_heading:
+    def _keyframe_pose(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray, RelativePose] | None:
+        """Keyframe ``a`` seen from keyframe ``b`` (cached): the verified matches' pixels in ``a`` and
+        in ``b`` and the servo's planar pose of ``a`` in ``b``'s frame; None when they do not verify.
+        Shared by the goal geometry (neighbour -> goal) and the heading prediction (subgoal -> next)."""
+        if (a, b) not in self._pair_pose:
             fa, fb = self.map.nodes[a].features, self.map.nodes[b].features
             v = verify(fa, fb, self.map.config.match)
-            theta = math.nan
+            pair = None
             if v.inliers >= self.map.config.match.min_inliers:
-                m = v.inlier_matches
-                pose = relative_pose(fa.keypoints[m.ia], fb.keypoints[m.ib], self.map.camera, self.servo.config.geometry)
-                if pose.status in (PoseStatus.OK, PoseStatus.PURE_ROTATION):
-                    theta = pose.theta
-            self._edge_heading[(a, b)] = theta
-        return self._edge_heading[(a, b)]
+                cur, dst = fa.keypoints[v.inlier_matches.ia], fb.keypoints[v.inlier_matches.ib]
+                pair = (cur, dst, relative_pose(cur, dst, self.map.camera, self.servo.config.geometry))
+            self._pair_pose[(a, b)] = pair
+        return self._pair_pose[(a, b)]
+
+    def _keyframe_heading(self, a: int, b: int) -> float:
+        """Heading of keyframe ``a`` relative to keyframe ``b`` from their images [rad]; NaN when
+        their matches give no planar pose."""
+        pair = self._keyframe_pose(a, b)
+        if pair is None or pair[2].status not in (PoseStatus.OK, PoseStatus.PURE_ROTATION):
+            return math.nan
+        return pair[2].theta
 
     def _image_agrees(self, q: Query, v: Verification, node: int, flow_bound: float | None = None) -> bool:
         """The current image shows the node's keyframe view: verified matches barely moved
