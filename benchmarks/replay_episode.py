@@ -97,4 +97,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from topomap.errors import TopomapError
+
+    try:
+        sys.exit(main())
+    except TopomapError as e:  # bad input (e.g. --textures): one line, no traceback
+        sys.exit(f"Error: {e}")
