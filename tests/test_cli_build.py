@@ -13,6 +13,7 @@ import networkx as nx
 import numpy as np
 import pytest
 from conftest import assert_error, dataset, tamper
+from fuzz_cases import reseal
 from map_synth import FRAME_SIZE, out_and_back_x, scene, sequence, window, write_out_and_back, write_sequence, write_video
 from typer.testing import CliRunner
 
@@ -275,7 +276,7 @@ def test_interrupted_rebuild_keeps_the_existing_map(runner, cli_app, walk, walk_
     if where == "loops":
         monkeypatch.setattr(build_mod, "_close_loops", interrupt)
     else:  # after the node rows went into the temporary file
-        monkeypatch.setattr(store, "_insert_frames", interrupt)
+        monkeypatch.setattr(store, "_frame_rows", interrupt)
     result = runner.invoke(cli_app, ["build", str(walk[0]), "-o", str(walk_copy), "--force", *QUICK])
     assert result.exit_code != 0
     assert walk_copy.read_bytes() == before
@@ -284,14 +285,14 @@ def test_interrupted_rebuild_keeps_the_existing_map(runner, cli_app, walk, walk_
 
 def test_failed_append_keeps_the_map(runner, cli_app, walk, walk_copy, monkeypatch):
     before = walk_copy.read_bytes()
-    monkeypatch.setattr(store, "_upsert_edges", interrupt)  # midway: new nodes and frames already inserted
+    monkeypatch.setattr(store, "_edge_rows", interrupt)  # midway: new nodes and frames already inserted
     result = runner.invoke(cli_app, ["build", str(walk[0]), "-o", str(walk_copy), "--append"])
     assert result.exit_code != 0
     assert walk_copy.read_bytes() == before
     assert files_in(walk_copy.parent) == ["copy.topomap"]
     monkeypatch.undo()
     assert_error(runner.invoke(cli_app, ["build", str(walk[0]), "-o", str(walk_copy.parent / "new.topomap"), "--append"]),
-                 "cannot append", "does not exist")
+                 "new.topomap does not exist", "build it first")
 
 
 # ============================================================================= round trips
@@ -389,6 +390,7 @@ def test_show_and_export_output_paths(runner, cli_app, walk, tmp_path, monkeypat
 def test_index_rebuilds_the_index(runner, cli_app, walk, walk_copy):
     original = load_map(walk[1]).index.to_arrays()
     tamper(walk_copy, "DELETE FROM array")
+    reseal(walk_copy)  # an index-less map as an older topomap wrote it
     assert info_json(runner, cli_app, walk_copy)["index"] is False
     result = ok(runner.invoke(cli_app, ["index", str(walk_copy)]))
     assert "indexed" in result.stdout

@@ -14,6 +14,7 @@ import networkx as nx
 import numpy as np
 import pytest
 from conftest import tamper
+from fuzz_cases import reseal
 from map_synth import FAST, write_out_and_back
 
 import topomap.store as store
@@ -188,18 +189,25 @@ def test_newer_schema_asks_to_upgrade(copy):
 
 def test_damaged_content(copy):
     tamper(copy, "UPDATE feature SET keypoints = x'0011' WHERE node_id = 1")
-    with pytest.raises(MapFormatError, match="keypoints of node 1 does not decode"):
+    with pytest.raises(MapFormatError, match="feature row \\(1\\) fails its checksum"):
+        load_map(copy)
+    reseal(copy)  # an attacker who recomputes the checksums meets the checks behind them
+    with pytest.raises(MapFormatError, match="keypoints of node 1 holds 2 bytes"):
         load_map(copy)
 
 
 def test_damaged_header(copy):
     tamper(copy, "UPDATE meta SET value = '{\"fx\": ' WHERE key = 'camera'")
-    with pytest.raises(MapFormatError, match="header is not valid JSON"):
+    with pytest.raises(MapFormatError, match="meta row \\(camera\\) fails its checksum"):
+        load_map(copy)
+    reseal(copy)
+    with pytest.raises(MapFormatError, match="header entry 'camera' is not valid JSON"):
         load_map(copy)
 
 
 def test_wrong_format_name(copy):
     tamper(copy, "UPDATE meta SET value = '\"something-else\"' WHERE key = 'format'")
+    reseal(copy)
     with pytest.raises(MapFormatError, match="not a topomap map"):
         load_map(copy)
 
@@ -214,7 +222,7 @@ def test_check_writable(tmp_path):
     with pytest.raises(DatasetError, match="already exists; use --force"):
         check_writable(tmp_path / "m.topomap")
     assert check_writable(tmp_path / "m.topomap", overwrite=True) == tmp_path / "m.topomap"
-    with pytest.raises(DatasetError, match="cannot append.*does not exist"):
+    with pytest.raises(DatasetError, match="does not exist; build it first"):
         check_writable(tmp_path / "new.topomap", append=True)
 
 
@@ -228,7 +236,7 @@ def test_save_refuses_to_overwrite(built, copy):
     assert load_map(copy).edges == m.edges
 
 
-@pytest.mark.parametrize("stage", ["_insert_nodes", "_insert_frames", "_write_meta_and_index"])
+@pytest.mark.parametrize("stage", ["_node_rows", "_frame_rows", "_write_meta_and_arrays"])
 def test_interrupted_save_leaves_nothing_behind(built, copy, monkeypatch, stage):
     m, _ = built
     folder = copy.parent
@@ -259,7 +267,7 @@ def test_interrupted_update_rolls_back(built, copy, monkeypatch):
     def interrupt(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(store, "_upsert_edges", interrupt)  # after the node and frame rows went in
+    monkeypatch.setattr(store, "_edge_rows", interrupt)  # after the node and frame rows went in
     with pytest.raises(KeyboardInterrupt):
         update_map(grown, copy, first_new_node=n0, first_new_frame=f0)
     assert copy.read_bytes() == before
