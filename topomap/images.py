@@ -174,13 +174,14 @@ def read_file_bytes(path: str | Path, *, max_bytes: int = MAX_IMAGE_BYTES, what:
         if e.errno == errno.ELOOP:
             raise DatasetError(f"{what} {name} is a symbolic link loop") from None
         raise DatasetError(f"cannot read {what} {name}: {e.strerror or e}") from None
-    with os.fdopen(fd, "rb") as fh:
-        st = os.fstat(fd)
+    st = os.fstat(fd)
+    if not stat.S_ISREG(st.st_mode):
+        os.close(fd)
         if stat.S_ISDIR(st.st_mode):
             raise DatasetError(f"{what} {name} is a folder, not a file")
-        if not stat.S_ISREG(st.st_mode):
-            kind = "a FIFO" if stat.S_ISFIFO(st.st_mode) else "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode) else "not a regular file"
-            raise DatasetError(f"{what} {name} is {kind}, not a regular file")
+        kind = "a FIFO" if stat.S_ISFIFO(st.st_mode) else "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode) else "not a regular file"
+        raise DatasetError(f"{what} {name} is {kind}, not a regular file")
+    with os.fdopen(fd, "rb") as fh:
         if st.st_size > max_bytes:
             raise DatasetError(f"{what} {name} is {st.st_size / 2**20:.0f} MB, more than the {max_bytes / 2**20:.0f} MB topomap reads")
         try:
@@ -242,6 +243,8 @@ def probe_image(data: bytes, what: str = "image") -> ImageInfo:
         return ImageInfo("PNG", w, h, channels)
     if head[:2] == b"\xff\xd8":
         return _probe_jpeg(data, what)
+    if head[:1] == b"P" and head[1:2] in (b"1", b"2", b"3", b"4", b"5", b"6"):
+        return _probe_pnm(data, what)
     try:
         from PIL import Image, UnidentifiedImageError  # noqa: F401
 
@@ -251,11 +254,27 @@ def probe_image(data: bytes, what: str = "image") -> ImageInfo:
                 w, h = im.size
                 fmt = str(im.format)
                 channels = len(im.getbands())
-    except Image.DecompressionBombError as e:  # Pillow refuses to even open it; its size is in the message
-        raise DatasetError(f"{what} declares too many pixels ({str(e).split(' pixels')[0].split('(')[-1]} px)") from None
+    except Image.DecompressionBombError:  # Pillow refuses to even open it
+        raise DatasetError(f"{what} declares more pixels than the {MAX_IMAGE_PIXELS / 1e6:.0f} Mpx topomap decodes "
+                           "(a decompression bomb or a far too large image); shrink it first") from None
     except Exception:  # a parser of untrusted bytes: any failure means "not an image we read"
         raise DatasetError(f"{what} is not a readable image (unknown format, corrupt or truncated)") from None
     return ImageInfo(fmt, int(w), int(h), channels)
+
+
+_PNM_TOKEN = re.compile(rb"(?:\s|#[^\n]*\n)*(\d+)")
+
+
+def _probe_pnm(buf: bytes, what: str) -> ImageInfo:
+    """Width and height from a PBM/PGM/PPM header (``P5 640 480 255``, comments allowed)."""
+    pos, vals = 2, []
+    for _ in range(2):
+        m = _PNM_TOKEN.match(buf, pos, min(len(buf), pos + 4096))
+        if m is None:
+            raise DatasetError(f"{what} is not a valid PNM image (no size in its header)")
+        vals.append(int(m.group(1)))
+        pos = m.end()
+    return ImageInfo("PPM", vals[0], vals[1], 3 if buf[1:2] in (b"3", b"6") else 1)
 
 
 def _probe_jpeg(buf: bytes, what: str) -> ImageInfo:

@@ -90,6 +90,8 @@ SCHEMA_VERSION = 2
 APPLICATION_ID = 0x544F504F  # "TOPO" in the SQLite header: identifies a map without reading tables
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 
+#: What SQLite raises on a damaged file (its message about a damaged schema may itself not decode).
+_SQLITE_ERRORS = (sqlite3.DatabaseError, UnicodeDecodeError)
 #: How long a writer waits for another writer's lock before it is refused [s].
 LOCK_TIMEOUT_S = 10.0
 #: How long a reader waits for a commit, and a committing writer for readers to finish [s].
@@ -109,6 +111,7 @@ _MAX_JSON_CHARS = 256 << 20
 _MAX_TEXT_CHARS = 64 << 10  # file names, statuses, dtype and shape strings
 _MAX_FEATURES = 1_000_000
 _MAX_ID = 2**31 - 1
+_STATUS = re.compile(r"[a-z][a-z _-]{0,63}")  # frame statuses: ok | unreadable | too small | ...
 
 # ---------------------------------------------------------------------- schema definitions
 #: Schema 1, as topomap 0.1.0 wrote it (verbatim: files are checked against this exact text).
@@ -397,6 +400,8 @@ class _Bad(Exception):
 
 
 def _damaged(path: Path, what: str) -> MapFormatError:
+    what = " ".join(str(what).split())  # one line, whatever SQLite's message held
+    what = what if len(what) <= 240 else what[:237] + "..."
     return MapFormatError(f"map {display_name(path.name)} is damaged: {what}; rebuild it (topomap build) or restore a copy")
 
 
@@ -589,6 +594,13 @@ def _check_size(con: sqlite3.Connection, path: Path, shown: Path) -> None:
         raise _damaged(shown, f"the file is truncated ({size} bytes of {pages * page})")
 
 
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
+
+
 def _is_wal(header: bytes) -> bool:
     return len(header) >= 20 and header[18] == 2
 
@@ -609,7 +621,7 @@ def _connect(path: Path, *, readonly: bool, immutable: bool = False, timeout_s: 
         con = sqlite3.connect(path, timeout=timeout_s, isolation_level=None)
     try:
         _configure(con, readonly=readonly)
-    except sqlite3.DatabaseError:
+    except _SQLITE_ERRORS:
         con.close()
         raise
     return con
@@ -622,14 +634,25 @@ def _roll_back_hot_journal(path: Path, header: bytes) -> bool:
     belongs to a live writer is not hot and is left alone. The file returns to its last commit."""
     if not (os.access(path, os.W_OK) and os.access(path.parent if str(path.parent) else Path("."), os.W_OK)):
         return False
+    journal = _companion(path, "-journal")
     try:
-        with _opened(path, header, readonly=False) as con:
+        with _opened(path, header, readonly=False, timeout_s=5.0) as con:
             con.execute("SELECT count(*) FROM sqlite_master").fetchone()
-    except sqlite3.DatabaseError:
+            if journal.exists():
+                # Not hot: a live writer's (it holds the write lock), or a stale one whose header
+                # never reached the disk. Under the write lock no writer exists: remove it then.
+                con.execute("PRAGMA busy_timeout = 0")
+                try:
+                    con.execute("BEGIN IMMEDIATE")
+                except sqlite3.OperationalError:
+                    return True  # a live writer: its journal is its own business
+                journal.unlink(missing_ok=True)
+                con.execute("ROLLBACK")
+                return True
+    except _SQLITE_ERRORS:
         return False
-    if not _companion(path, "-journal").exists():
-        log.info("map %s: rolled back the unfinished write of an interrupted topomap process; the map "
-                 "is as it was at its last complete write", display_name(path.name))
+    log.info("map %s: rolled back the unfinished write of an interrupted topomap process; the map "
+             "is as it was at its last complete write", display_name(path.name))
     return True
 
 
@@ -675,7 +698,8 @@ def _check_schema(con: sqlite3.Connection, version: int, path: Path) -> None:
     if actual == expected:
         return
     names = {(t, n): s for t, n, _, s in expected}
-    for t, n, _, s in sorted(actual - expected, key=lambda r: (r[0], r[1])):
+    rank = {"view": 0, "trigger": 1, "table": 2, "index": 3}  # name the most telling difference
+    for t, n, _, s in sorted(actual - expected, key=lambda r: (rank.get(r[0], 4), r[1])):
         if (t, n) in names:
             what = f"its {t} {n!r} is not defined as topomap defines it"
         else:
@@ -705,18 +729,17 @@ def _reading(path: Path) -> Iterator[tuple[sqlite3.Connection, int, Path]]:
         journal, wal = _companion(path, "-journal"), _companion(path, "-wal")
         try:
             if not _open_here(path):  # else this process reads it already: no journal can be hot
-                hot = journal.exists() and journal.stat().st_size > 0
-                wal_pending = _is_wal(header) and wal.exists() and wal.stat().st_size > 0
-                if hot and not _roll_back_hot_journal(path, header):
-                    target = _copy_for_reading(path, stack)
-                elif wal_pending:
+                # a journal: hot, a live writer's, or a stale (even empty) leftover
+                if journal.exists() and not _roll_back_hot_journal(path, header) and _size(journal) > 0:
+                    target = _copy_for_reading(path, stack)  # read-only: recover in a private copy
+                elif _is_wal(header) and _size(wal) > 0:
                     target = _copy_for_reading(path, stack)
                 header = _read_header(target) if target is not path else _read_header(path)
             con = stack.enter_context(_opened(target, header, readonly=True, immutable=_is_wal(header),
                                               register=target is path))
         except OSError as e:
             raise MapFormatError(f"cannot read map {display_name(str(path))}: {e.strerror or e}") from None
-        except sqlite3.DatabaseError as e:
+        except _SQLITE_ERRORS as e:
             raise _damaged(path, f"SQLite cannot open it ({e})") from None
         try:
             con.execute("BEGIN")  # one snapshot: a writer committing meanwhile waits for us
@@ -728,7 +751,7 @@ def _reading(path: Path) -> Iterator[tuple[sqlite3.Connection, int, Path]]:
                 raise MapFormatError(f"map {display_name(path.name)} was being written by a process that just "
                                      "stopped; run the command again (the unfinished write is rolled back)") from None
             raise _damaged(path, f"SQLite cannot read it ({e})") from None
-        except sqlite3.DatabaseError as e:
+        except _SQLITE_ERRORS as e:
             raise _damaged(path, f"SQLite cannot read it ({e})") from None
         yield con, version, target
 
@@ -753,7 +776,7 @@ def _locked(path: Path, timeout_s: float, header: bytes) -> Iterator[sqlite3.Con
                         f"index or upgrade) for more than {timeout_s:.0f} s; run this one again when it has finished"
                     ) from None
                 raise _damaged(path, f"SQLite cannot lock it ({e})") from None
-            except sqlite3.DatabaseError as e:
+            except _SQLITE_ERRORS as e:
                 raise _damaged(path, f"SQLite cannot open it ({e})") from None
             try:
                 same = _file_key(path) == before
@@ -883,12 +906,14 @@ def _write_new(m: TopoMap, target: Path) -> None:
             _insert(con, "feature", _feature_rows(nodes))
             _insert(con, "edge", _edge_rows(sorted(m.edges.values(), key=lambda e: e.key)))
             _insert(con, "frame", _frame_rows(m.frames))
-            _write_meta_and_arrays(con, m, int(m.meta.get("revision") or 0) + 1)
+            revision = int(m.meta.get("revision") or 0) + 1
+            _write_meta_and_arrays(con, m, revision)
             con.execute("COMMIT")
         except BaseException:
             if con.in_transaction:
                 con.execute("ROLLBACK")
             raise
+    m.meta["revision"] = revision  # the map in memory is now the file's
 
 
 def _discard(tmp: Path) -> None:
@@ -982,7 +1007,7 @@ def open_for_update(path: str | Path, *, images: bool = False, timeout_s: float 
             _check_size(con, path, path)
             _check_schema(con, version, path)
             m = _read(con, path, version, images)
-        except sqlite3.DatabaseError as e:
+        except _SQLITE_ERRORS as e:
             raise _damaged(path, f"SQLite cannot read it ({e})") from None
         yield MapUpdate(path, m, con, frozenset(m.nodes), len(m.frames), int(m.meta.get("revision") or 0))
 
@@ -1043,7 +1068,7 @@ def upgrade_map(path: str | Path) -> tuple[int, int]:
             _check_size(con, path, path)
             _check_schema(con, version, path)
             _read(con, path, version, images=True)
-        except sqlite3.DatabaseError as e:
+        except _SQLITE_ERRORS as e:
             raise _damaged(path, f"SQLite cannot read it ({e})") from None
         tmp = _temp_path(path)
         try:
@@ -1083,9 +1108,7 @@ def load_map(path: str | Path, *, images: bool = False) -> TopoMap:
     with _reading(path) as (con, version, _):
         try:
             return _read(con, path, version, images)
-        except sqlite3.OperationalError as e:
-            raise _damaged(path, f"SQLite cannot read it ({e})") from None
-        except sqlite3.DatabaseError as e:
+        except _SQLITE_ERRORS as e:
             raise _damaged(path, f"SQLite cannot read it ({e})") from None
 
 
@@ -1114,7 +1137,7 @@ def _rows(con: sqlite3.Connection, table: str, version: int, *, skip: tuple[str,
         if version >= 2:
             covered = [values[c] for c, _, _ in cols if c not in ("crc", "image")]
             if _row_crc(covered) != values["crc"]:
-                raise _Bad(f"a {table} row ({str(row[0])[:40]}) fails its checksum: the file changed after topomap wrote it")
+                raise _Bad(f"row {str(row[0])[:40]} of table {table} fails its checksum: the file changed after topomap wrote it")
         yield tuple(values[c] for c in names if c != "crc")
 
 
@@ -1235,8 +1258,8 @@ def _read_checked(con: sqlite3.Connection, path: Path, version: int, images: boo
         nid, seq, frame_id, source, w, h, thumb, d_blob, d_dt, d_shape, pose = row[:11]
         if nid not in feats:
             raise _Bad(f"node {nid} has no features")
-        if not (0 <= seq <= _MAX_ID and 0 <= frame_id <= _MAX_ID):
-            raise _Bad(f"node {nid} names sequence {seq} / frame {frame_id}")
+        if not (0 <= seq <= _MAX_ID and 0 <= frame_id <= _MAX_ID) or (sequences and seq >= len(sequences)):
+            raise _Bad(f"node {nid} names build run {seq} / frame {frame_id}, which the map does not have")
         descriptor = None
         if d_blob is not None:
             descriptor = _unpack(d_blob, d_dt, d_shape, f"the whole-image descriptor of node {nid}", dtypes={"<f4"}, ndim=1)
@@ -1285,12 +1308,12 @@ def _read_checked(con: sqlite3.Connection, path: Path, version: int, images: boo
     for i, (fid, s, si, src, nid, st) in enumerate(_rows(con, "frame", version, order="id")):
         if fid != i:
             raise _Bad(f"frame ids are not 0, 1, 2, ... (found {fid} at position {i})")
-        if not (0 <= s <= _MAX_ID and 0 <= si <= _MAX_ID):
-            raise _Bad(f"frame {fid} names sequence {s} / position {si}")
+        if not (0 <= s <= _MAX_ID and 0 <= si <= _MAX_ID) or (sequences and s >= len(sequences)):
+            raise _Bad(f"frame {fid} names build run {s} / position {si}, which the map does not have")
         if nid is not None and nid not in m.nodes:
             raise _Bad(f"frame {fid} names node {nid}, which does not exist")
-        if len(st) > 64:
-            raise _Bad(f"frame {fid} has a malformed status")
+        if not _STATUS.fullmatch(st) or (st != "ok" and nid is not None):
+            raise _Bad(f"frame {fid} has a malformed status {st[:20]!r}")
         frames.append(FrameRecord(fid, s, si, src, nid, st))
     m.frames = frames
     arrays = {}
@@ -1333,7 +1356,7 @@ def load_node_image(path: str | Path, node_id: int) -> np.ndarray | None:
         try:
             row = con.execute("SELECT image, " + ("image_crc" if version >= 2 else "NULL") + ", width, height FROM node WHERE id = ?",
                               (int(node_id),)).fetchone()
-        except (sqlite3.DatabaseError, OverflowError) as e:
+        except (*_SQLITE_ERRORS, OverflowError) as e:
             raise _damaged(path, f"SQLite cannot read it ({e})") from None
     if row is None:
         from topomap.errors import NodeNotFoundError
