@@ -40,7 +40,7 @@ from topomap.store import load_map  # noqa: E402
 
 #: kind -> cases in the full run (>= 2000 in all); --quick takes a tenth.
 FULL = {
-    "flip": 800, "truncate": 150, "tamper": 4 * len(fc.TAMPERS), "schema": 4 * len(fc.SCHEMA_ATTACKS),
+    "flip": 900, "truncate": 150, "tamper": 4 * len(fc.TAMPERS), "schema": 4 * len(fc.SCHEMA_ATTACKS),
     "image_bomb": 140, "map_bomb": 140, "kill_commit": 200, "concurrent": 80, "world": 85, "inputs": 100,
 }
 SEED0 = 10_000  # the tests use seeds 0..n

@@ -519,3 +519,12 @@ def test_replacing_a_map_being_written_is_refused(built, copy, monkeypatch):
         with pytest.raises(store.MapConflictError):
             save_map(m, copy, overwrite=True)
     assert copy.read_bytes() == before and files_in(copy.parent) == ["copy.topomap"]
+
+
+def test_object_arrays_are_never_stored(built, tmp_path):
+    m, path = built
+    m2 = load_map(path)
+    m2.arrays["objects"] = np.array([{"a": 1}, None], dtype=object)
+    with pytest.raises(store.TopomapError, match="only numbers and booleans"):
+        save_map(m2, tmp_path / "o.topomap")
+    assert not (tmp_path / "o.topomap").exists() and files_in(tmp_path) == []

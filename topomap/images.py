@@ -245,9 +245,9 @@ def probe_image(data: bytes, what: str = "image") -> ImageInfo:
         return _probe_jpeg(data, what)
     if head[:1] == b"P" and head[1:2] in (b"1", b"2", b"3", b"4", b"5", b"6"):
         return _probe_pnm(data, what)
-    try:
-        from PIL import Image, UnidentifiedImageError  # noqa: F401
+    from PIL import Image  # pillow is a dependency; imported here as only rare formats need it
 
+    try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             with Image.open(io.BytesIO(data), formats=DECODABLE_FORMATS) as im:

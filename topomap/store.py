@@ -885,7 +885,11 @@ def _write_meta_and_arrays(con: sqlite3.Connection, m: TopoMap, revision: int) -
         if _INDEX_ARRAY.fullmatch(name):
             raise TopomapError(f"array name {name!r} is reserved for the place-recognition index")
         arrays[name] = arr
-    _insert(con, "array", ((name, *_reorder(_pack(np.asarray(arr)))) for name, arr in arrays.items()))
+    packed = [(name, *_reorder(_pack(np.asarray(arr)))) for name, arr in arrays.items()]
+    for name, dtype, _, _ in packed:
+        if dtype not in _ARRAY_DTYPES:
+            raise TopomapError(f"cannot store array {name!r} of dtype {dtype}: only numbers and booleans (no pickle)")
+    _insert(con, "array", packed)
     counts = {t: con.execute(f"SELECT count(*) FROM {t}").fetchone()[0] for t in _TABLES if t != "meta"}
     _insert(con, "meta", [("row_counts", json.dumps(counts))], replace=True)
 
