@@ -396,13 +396,14 @@ def decode_image(
         raise DatasetError(f"{what} is {info.format}, expected {' or '.join(formats)}")
     if info.width < 1 or info.height < 1:
         raise DatasetError(f"{what} declares an empty size ({info.width}x{info.height} px)")
-    if info.pixels > max_pixels:
-        raise DatasetError(
-            f"{what} declares {info.width}x{info.height} pixels, more than the {max_pixels / 1e6:.0f} Mpx topomap "
-            "decodes (a decompression bomb or a far too large image); shrink it first"
-        )
     if max_size is not None and (info.width > max_size[0] or info.height > max_size[1]):
         raise DatasetError(f"{what} declares {info.width}x{info.height} pixels, more than {max_size[0]}x{max_size[1]}")
+    if info.pixels > max_pixels:
+        limit = f"{max_pixels / 1e6:.0f} Mpx" if max_pixels >= 1e6 else f"{max_pixels} pixels"
+        raise DatasetError(
+            f"{what} declares {info.width}x{info.height} pixels, more than the {limit} topomap "
+            "decodes (a decompression bomb or a far too large image); shrink it first"
+        )
     if _looks_truncated(buf):
         raise DatasetError(f"{what} is truncated")
     try:
