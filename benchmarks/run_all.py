@@ -25,6 +25,7 @@ BENCHMARKS = {
     "observability": ([], []),
     "navigate": (["--episodes", "40", "--worlds", "0,1"],
                  ["--episodes", "8", "--worlds", "0,1", "--max-hops", "10"]),
+    "fuzz": ([], ["--quick"]),
 }
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import time
@@ -18,7 +19,15 @@ from topomap.config import BUILD_PRESETS, build_preset
 from topomap.errors import DatasetError
 from topomap.features import detector
 from topomap.images import open_sequence
-from topomap.store import check_writable, export_graphml, export_json, load_map, save_map, update_map
+from topomap.store import (
+    check_writable,
+    export_graphml,
+    export_json,
+    load_map,
+    open_for_update,
+    save_map,
+    upgrade_map,
+)
 from topomap_cli.app import app, console, err_console, fail, print_json
 
 
@@ -84,29 +93,30 @@ def build(
     seq = open_sequence(source, every)  # bad sources fail here, before the progress bar appears
     check_writable(output, overwrite=force, append=append)
     cam = load_camera(camera) if camera is not None else None
-    base = load_map(output, images=False) if append else None
-    first_node = base.next_node_id() if base else 0
-    first_frame = len(base.frames) if base else 0
+    with contextlib.ExitStack() as stack:
+        # --append: the map's write lock is held from reading the map to the commit, so a concurrent
+        # `index` or `--append` waits (or is refused with one line) instead of being overwritten
+        update = stack.enter_context(open_for_update(output)) if append else None
+        base = update.map if update is not None else None
+        t0 = time.perf_counter()
+        with _progress_bar(as_json) as bar:
+            tasks = {"frames": bar.add_task("frames", total=None, info="", unit="frames")}
+            labels = {"index": ("vocabulary", "steps"), "loops": ("loop closure", "nodes")}
 
-    t0 = time.perf_counter()
-    with _progress_bar(as_json) as bar:
-        tasks = {"frames": bar.add_task("frames", total=None, info="", unit="frames")}
-        labels = {"index": ("vocabulary", "steps"), "loops": ("loop closure", "nodes")}
+            def on_progress(p: BuildProgress) -> None:
+                if p.stage not in tasks:
+                    label, unit = labels[p.stage]
+                    tasks[p.stage] = bar.add_task(label, total=p.total, info="", unit=unit)
+                info = f"{p.nodes} nodes" if p.stage == "frames" else f"{p.edges} edges"
+                bar.update(tasks[p.stage], total=p.total or None, completed=p.done, info=info)
 
-        def on_progress(p: BuildProgress) -> None:
-            if p.stage not in tasks:
-                label, unit = labels[p.stage]
-                tasks[p.stage] = bar.add_task(label, total=p.total, info="", unit=unit)
-            info = f"{p.nodes} nodes" if p.stage == "frames" else f"{p.edges} edges"
-            bar.update(tasks[p.stage], total=p.total or None, completed=p.done, info=info)
-
-        m = build_map(seq, None if append and features is None else config, cam, base=base,
-                      on_progress=on_progress)
-    if append:
-        update_map(m, output, first_new_node=first_node, first_new_frame=first_frame)
-    else:
-        save_map(m, output, overwrite=force)
-    seconds = time.perf_counter() - t0
+            m = build_map(seq, None if append and features is None else config, cam, base=base,
+                          on_progress=on_progress)
+        if update is not None:
+            update.commit(m)
+        else:
+            save_map(m, output, overwrite=force)
+        seconds = time.perf_counter() - t0
     run = m.sequences[-1]
     summary = {
         "map": str(output),
@@ -146,7 +156,8 @@ def info(
     m = load_map(map_path)
     from topomap.store import SCHEMA_VERSION
 
-    data = {**m.summary(), "schema_version": SCHEMA_VERSION, "file_bytes": map_path.stat().st_size,
+    version = m.meta.get("schema_version", SCHEMA_VERSION)
+    data = {**m.summary(), "schema_version": version, "file_bytes": map_path.stat().st_size,
             "created_utc": m.meta.get("created_utc"), "topomap_version": m.meta.get("topomap_version"),
             "build_config": dataclasses.asdict(m.config),
             "sequence_sources": [s.get("source") for s in m.sequences]}
@@ -163,7 +174,8 @@ def info(
     t.add_row("index", "yes" if data["index"] else "no (run `topomap index`)")
     t.add_row("sequences", "; ".join(str(s) for s in data["sequence_sources"]))
     t.add_row("working size", f"{data['working_size'][0]}x{data['working_size'][1]}")
-    t.add_row("schema version", str(data["schema_version"]))
+    t.add_row("schema version", str(version) if version == SCHEMA_VERSION
+              else f"{version} (read as {SCHEMA_VERSION}; `topomap upgrade {map_path}` rewrites it)")
     t.add_row("file size", f"{data['file_bytes'] / 1e6:.2f} MB")
     console.print(t)
 
@@ -217,10 +229,23 @@ def export(
 @app.command()
 def index(map_path: Path = typer.Argument(..., metavar="MAP", help="Map file.")) -> None:
     """(Re)build a map's place-recognition index in place (maps built by older versions)."""
-    m = load_map(map_path)
-    build_index(m)
-    if m.index is None:
-        fail(f"{map_path} has too few features to index")
-    n = m.next_node_id()
-    update_map(m, map_path, first_new_node=n, first_new_frame=len(m.frames))
+    with open_for_update(map_path) as update:  # the write lock is held from reading to the commit
+        m = update.map
+        build_index(m)
+        if m.index is None:
+            fail(f"{map_path} has too few features to index")
+        update.commit()
     console.print(f"indexed {len(m.index)} nodes with {m.index.vocabulary.size} visual words")
+
+
+@app.command()
+def upgrade(map_path: Path = typer.Argument(..., metavar="MAP", help="Map file.")) -> None:
+    """Rewrite a map written by an older topomap in the current map schema (atomically).
+
+    Older maps open without it too (migrated in memory, the file untouched); the first command that
+    writes to an old map upgrades it as well."""
+    old, new = upgrade_map(map_path)
+    if old == new:
+        console.print(f"{map_path} already uses map schema {new}; nothing to do")
+    else:
+        console.print(f"upgraded {map_path} from map schema {old} to {new}")

@@ -37,6 +37,10 @@ def _localizer(map_path: Path, features: str | None, descriptor: str, top_k: int
 def _run(loc: Localizer, query: Path, sequence: bool, quiet: bool):
     """Localize every readable frame of QUERY; returns ``[(name, Localization)]`` and skipped names."""
     seq = open_sequence(query)
+    if seq.kind == "image":  # one image: its reason is the error, not a warning and a summary
+        frame = next(iter(seq))
+        if frame.image is None:
+            raise DatasetError(frame.error or f"{query} is not a readable image")
     filt = SequenceLocalizer(loc) if sequence else None
     out, skipped = [], []
     with Progress(TextColumn("[bold]queries"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),

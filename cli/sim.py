@@ -31,6 +31,21 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+#: Image files the sim commands write (chosen by the -o suffix).
+_IMAGE_OUT = (".png", ".jpg", ".jpeg", ".bmp")
+_PLOT_OUT = (".png", ".jpg", ".jpeg", ".svg", ".pdf")
+
+
+def _check_out(path: Path, suffixes: tuple[str, ...]) -> None:
+    """One line, before any work, for an output file that cannot be written."""
+    if path.is_dir():
+        fail(f"{path} is a folder; give a file name inside it")
+    if not path.parent.exists():
+        fail(f"folder {path.parent} does not exist")
+    if path.suffix.lower() not in suffixes:
+        fail(f"cannot write {path.name}: give a file name ending in one of {', '.join(suffixes)}")
+
+
 def _world(spec: str, textures: Optional[Path]):
     from topomap.sim.world import resolve_world
 
@@ -97,6 +112,7 @@ def show_world_cmd(
     """Draw a world's floor plan and one of its routes."""
     from topomap.sim.plot import plot_world
 
+    _check_out(out, _PLOT_OUT)
     wld = _world(world, None)
     if route is None and "loop" in wld.route_names:
         route = "loop"
@@ -123,6 +139,7 @@ def make_world_cmd(
     """Generate a world from a seed and save it as JSON."""
     from topomap.sim.world import generate_world
 
+    _check_out(out, (".json",))
     nx_, nz_ = _size_pair(lattice)
     wld = generate_world(seed, lattice=(nx_, nz_), rooms=rooms, textures=textures)
     try:
@@ -154,6 +171,7 @@ def render_cmd(
     from topomap.sim.geometry import Pose
     from topomap.sim.simulator import Simulator, default_camera
 
+    _check_out(out, _IMAGE_OUT)
     wld = _world(world, textures)
     start = None
     if pose is not None:

@@ -13,6 +13,7 @@ import networkx as nx
 import numpy as np
 import pytest
 from conftest import assert_error, dataset, tamper
+from fuzz_cases import reseal
 from map_synth import FRAME_SIZE, out_and_back_x, scene, sequence, window, write_out_and_back, write_sequence, write_video
 from typer.testing import CliRunner
 
@@ -275,7 +276,7 @@ def test_interrupted_rebuild_keeps_the_existing_map(runner, cli_app, walk, walk_
     if where == "loops":
         monkeypatch.setattr(build_mod, "_close_loops", interrupt)
     else:  # after the node rows went into the temporary file
-        monkeypatch.setattr(store, "_insert_frames", interrupt)
+        monkeypatch.setattr(store, "_frame_rows", interrupt)
     result = runner.invoke(cli_app, ["build", str(walk[0]), "-o", str(walk_copy), "--force", *QUICK])
     assert result.exit_code != 0
     assert walk_copy.read_bytes() == before
@@ -284,14 +285,14 @@ def test_interrupted_rebuild_keeps_the_existing_map(runner, cli_app, walk, walk_
 
 def test_failed_append_keeps_the_map(runner, cli_app, walk, walk_copy, monkeypatch):
     before = walk_copy.read_bytes()
-    monkeypatch.setattr(store, "_upsert_edges", interrupt)  # midway: new nodes and frames already inserted
+    monkeypatch.setattr(store, "_edge_rows", interrupt)  # midway: new nodes and frames already inserted
     result = runner.invoke(cli_app, ["build", str(walk[0]), "-o", str(walk_copy), "--append"])
     assert result.exit_code != 0
     assert walk_copy.read_bytes() == before
     assert files_in(walk_copy.parent) == ["copy.topomap"]
     monkeypatch.undo()
     assert_error(runner.invoke(cli_app, ["build", str(walk[0]), "-o", str(walk_copy.parent / "new.topomap"), "--append"]),
-                 "cannot append", "does not exist")
+                 "new.topomap does not exist", "build it first")
 
 
 # ============================================================================= round trips
@@ -389,6 +390,7 @@ def test_show_and_export_output_paths(runner, cli_app, walk, tmp_path, monkeypat
 def test_index_rebuilds_the_index(runner, cli_app, walk, walk_copy):
     original = load_map(walk[1]).index.to_arrays()
     tamper(walk_copy, "DELETE FROM array")
+    reseal(walk_copy)  # an index-less map as an older topomap wrote it
     assert info_json(runner, cli_app, walk_copy)["index"] is False
     result = ok(runner.invoke(cli_app, ["index", str(walk_copy)]))
     assert "indexed" in result.stdout
@@ -475,3 +477,39 @@ def test_camera_scales_with_resize(runner, cli_app, tmp_path, two_frames):
     m = load_map(tmp_path / "m.topomap")
     assert m.working_size == (240, 180) and m.camera.fx == 200.0 and m.camera.cx == pytest.approx(119.5)
     assert m.config.features.resize_max_px == 240 and m.config.features.max_features == 500  # fast preset
+
+
+# ============================================================================= issue 14: hostile input
+def test_index_of_a_read_only_map_says_so(runner, cli_app, walk_copy, monkeypatch):
+    import topomap.store as store_mod
+
+    monkeypatch.setattr(store_mod.os, "access", lambda p, mode: mode != store_mod.os.W_OK)
+    assert_error(runner.invoke(cli_app, ["index", str(walk_copy)]), "is read-only", "copy it somewhere writable")
+
+
+@pytest.mark.parametrize("value", ["99999999999999999999", "1000000000"])
+def test_absurd_max_features_is_one_line(runner, cli_app, walk, tmp_path, value):
+    assert_error(runner.invoke(cli_app, ["build", str(walk[0]), "-o", str(tmp_path / "m.topomap"), "--max-features", value]),
+                 "is too large; use at most 100000")
+
+
+def test_camera_folder_is_named_a_folder(runner, cli_app, walk, tmp_path):
+    assert_error(runner.invoke(cli_app, ["build", str(walk[0]), "-o", str(tmp_path / "m.topomap"), "--camera", str(tmp_path)]),
+                 "is a folder")
+
+
+def test_bomb_and_odd_entries_in_a_build_folder_are_skipped_and_counted(runner, cli_app, two_frames, tmp_path):
+    from fuzz_cases import pgm_declaring, png_bomb
+
+    folder = tmp_path / "frames"
+    write_sequence(folder, two_frames, stem="f")
+    (folder / "a0_bomb.png").write_bytes(png_bomb(30000, 30000))  # first in order: it must not set the working size
+    (folder / "a1_bomb.pgm").write_bytes(pgm_declaring(40000, 40000))
+    (folder / "x.jpg").mkdir()
+    (folder / "caf\udce9.png").write_bytes((folder / "f0.png").read_bytes())
+    s = build_json(runner, cli_app, folder, "-o", tmp_path / "m.topomap", *QUICK)
+    reasons = {x["frame"]: x["reason"] for x in s["skipped"]}
+    assert s["frames_read"] == 3 and s["frames_skipped"] == 3, s
+    assert "declares 30000x30000 pixels" in reasons["a0_bomb.png"] and "is a folder" in reasons["x.jpg"]
+    m = load_map(tmp_path / "m.topomap")
+    assert m.working_size == (480, 360) and "caf\\xe9.png" in [f.source for f in m.frames]

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from conftest import assert_error as cli_error
 from conftest import dataset, tamper
+from fuzz_cases import reseal
 from map_synth import FRAME_SIZE, scene, window, write_sequence, write_video
 from test_localize import corridor_map_file
 from typer.testing import CliRunner
@@ -141,7 +142,7 @@ def test_eval_with_poses(runner, cli_app, data):
 def test_unreadable_query_image(runner, cli_app, data, tmp_path):
     bad = tmp_path / "broken.png"
     bad.write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 20)
-    assert_error(runner.invoke(cli_app, ["localize", str(data["map"]), str(bad)]), "no readable query image")
+    assert_error(runner.invoke(cli_app, ["localize", str(data["map"]), str(bad)]), "broken.png is not a valid PNG")
     assert_error(runner.invoke(cli_app, ["localize", str(data["map"]), str(tmp_path / "nothing.png")]), "does not exist")
 
 
@@ -166,6 +167,7 @@ def test_empty_query_folder(runner, cli_app, data, tmp_path):
 def test_map_without_index(runner, cli_app, data, tmp_path):
     bare = Path(shutil.copy(data["map"], tmp_path / "bare.topomap"))
     tamper(bare, "DELETE FROM array")
+    reseal(bare)  # an index-less map as `--no-index` or an older topomap wrote it
     for extra in (["--descriptor", "fused"], ["--descriptor", "bow"]):
         assert_error(runner.invoke(cli_app, ["localize", str(bare), str(data["queries"]), *extra]),
                      "no place-recognition index", "topomap index MAP")

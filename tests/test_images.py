@@ -2,17 +2,26 @@
 
 from __future__ import annotations
 
+import os
+import time
+
 import cv2
 import numpy as np
 import pytest
+from fuzz_cases import jpeg_declaring, pgm_declaring, png_bomb, png_declaring
 from map_synth import sequence, write_sequence, write_video
 
 from topomap.errors import DatasetError
 from topomap.images import (
+    MAX_IMAGE_BYTES,
+    MAX_WORKING_SIDE_PX,
     ImageSequence,
+    decode_image,
+    display_name,
     list_images,
     natural_key,
     open_sequence,
+    probe_image,
     read_image,
     to_gray_u8,
     to_working_resolution,
@@ -226,3 +235,125 @@ def test_working_size_caps_the_enlargement():
     # a 64x32 thumbnail is not enlarged 7.5x to reach 480 px: at most 3x (interpolation invents texture)
     assert working_size(64, 32, None, 480) == (192, 96)
     assert working_size(64, 32, None, 480, max_upscale=10.0) == (480, 240)
+
+
+# ----------------------------------------------------------------------------- the decoding gate
+@pytest.mark.parametrize("make,size", [
+    (lambda: png_bomb(30000, 30000), (30000, 30000)),  # complete and valid: 890 KB for 900 Mpx
+    (lambda: png_declaring(60000, 60000), (60000, 60000)),
+    (lambda: jpeg_declaring(20000, 20000, colour=True), (20000, 20000)),
+    (lambda: pgm_declaring(40000, 40000), (40000, 40000)),
+])
+def test_bombs_are_refused_from_their_declared_size(make, size):
+    data = make()
+    t0 = time.perf_counter()
+    with pytest.raises(DatasetError, match=f"declares {size[0]}x{size[1]} pixels, more than the 50 Mpx"):
+        decode_image(data)
+    assert time.perf_counter() - t0 < 1.0  # refused from the header, nothing decoded
+    info = probe_image(data)
+    assert (info.width, info.height) == size
+
+
+def test_probe_reads_every_format_without_decoding(tmp_path, grey):
+    for ext, fmt in ((".png", "PNG"), (".jpg", "JPEG"), (".bmp", "BMP"), (".tiff", "TIFF"), (".webp", "WEBP"),
+                     (".pgm", "PPM"), (".gif", None)):
+        if ext == ".gif":
+            data, fmt = _gif(grey), "GIF"
+        else:
+            data = cv2.imencode(ext, grey)[1].tobytes()
+        info = probe_image(data)
+        assert (info.format, info.width, info.height) == (fmt, grey.shape[1], grey.shape[0]), ext
+        assert decode_image(data).shape == grey.shape, ext
+
+
+def test_gate_limits_and_formats(grey):
+    png = cv2.imencode(".png", grey)[1].tobytes()
+    h, w = grey.shape
+    with pytest.raises(DatasetError, match=f"more than {w - 1}x{h}"):
+        decode_image(png, max_size=(w - 1, h))
+    with pytest.raises(DatasetError, match="is PNG, expected JPEG"):
+        decode_image(png, formats=("JPEG",))
+    with pytest.raises(DatasetError, match="is empty"):
+        decode_image(b"")
+    with pytest.raises(DatasetError, match="not a readable image"):
+        decode_image(b"GIF89a" + bytes(20))
+    assert decode_image(png, color=True).shape == (h, w, 3)
+
+
+def test_decoder_warnings_stay_off_stderr(capfd, grey, monkeypatch):
+    import logging
+
+    monkeypatch.setattr(logging.getLogger("topomap"), "level", logging.WARNING)  # as the CLI runs by default
+    jpg = bytearray(cv2.imencode(".jpg", cv2.resize(grey, (320, 240)))[1].tobytes())
+    for i in range(5):
+        jpg[len(jpg) // 2 + 97 * i] ^= 0x55  # corrupt entropy-coded data: libjpeg complains on fd 2
+    assert decode_image(bytes(jpg)).shape == (240, 320)
+    with pytest.raises(DatasetError):
+        decode_image(cv2.imencode(".png", grey)[1].tobytes()[:-30])
+    out, err = capfd.readouterr()
+    assert err == "" and out == ""
+
+
+def test_files_that_are_not_regular_files(tmp_path):
+    (tmp_path / "dir.jpg").mkdir()
+    os.mkfifo(tmp_path / "fifo.png")
+    os.symlink("/dev/zero", tmp_path / "zero.jpg")
+    os.symlink("loop.jpg", tmp_path / "loop.jpg")
+    os.symlink("missing.jpg", tmp_path / "broken.jpg")
+    for name, reason in (("dir.jpg", "is a folder"), ("fifo.png", "is a FIFO"), ("zero.jpg", "is a device"),
+                         ("loop.jpg", "symbolic link loop"), ("broken.jpg", "broken symbolic link")):
+        t0 = time.perf_counter()
+        with pytest.raises(DatasetError, match=reason):
+            read_image(tmp_path / name)
+        assert time.perf_counter() - t0 < 1.0, name  # a FIFO is never waited on
+    big = tmp_path / "big.png"
+    with open(big, "wb") as fh:
+        fh.truncate(MAX_IMAGE_BYTES + 1)  # sparse: no disk used
+    with pytest.raises(DatasetError, match="more than the 256 MB topomap reads"):
+        read_image(big)
+
+
+def test_odd_folder_entries_are_counted_as_skipped(tmp_path, grey):
+    write_sequence(tmp_path, [grey, grey], stem="img")
+    (tmp_path / "dir.jpg").mkdir()
+    os.mkfifo(tmp_path / "fifo.png")
+    os.symlink("/dev/zero", tmp_path / "zero.jpg")
+    os.symlink("loop.jpg", tmp_path / "loop.jpg")
+    (tmp_path / "anim.gif").write_bytes(_gif(grey))
+    (tmp_path / "notes.txt").write_text("not a frame")
+    frames = list(open_sequence(tmp_path))
+    errors = {f.name: f.error for f in frames if f.image is None}
+    assert set(errors) == {"dir.jpg", "fifo.png", "zero.jpg", "loop.jpg"}, errors
+    assert {f.name for f in frames if f.image is not None} == {"img0.png", "img1.png", "anim.gif"}
+    listed = tmp_path / "list.txt"
+    listed.write_text("fifo.png\nimg0.png\n/dev/zero\n")
+    frames = list(open_sequence(listed))
+    assert [f.image is None for f in frames] == [True, False, True]
+
+
+def _gif(grey) -> bytes:
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(grey).save(buf, "GIF")
+    return buf.getvalue()
+
+
+def test_list_file_that_is_a_fifo_is_refused(tmp_path):
+    os.mkfifo(tmp_path / "frames.txt")
+    with pytest.raises(DatasetError, match="not a regular file"):
+        open_sequence(tmp_path / "frames.txt")
+
+
+def test_working_size_never_exceeds_the_cap():
+    assert max(working_size(30000, 30000, None, 480)) == MAX_WORKING_SIDE_PX
+    assert working_size(8000, 6000, None, 480) == (4096, 3072)
+    assert max(working_size(100, 100, None, 10**9, max_upscale=1e9)) == MAX_WORKING_SIDE_PX
+    assert working_size(8000, 6000, 640, 480) == (640, 480)
+
+
+def test_display_name_escapes_non_utf8_bytes():
+    assert display_name("caf\udce9.jpg") == "caf\\xe9.jpg"
+    assert display_name("café.jpg") == "café.jpg"

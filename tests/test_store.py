@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import ast
 import json
+import os
 import shutil
+import signal
 import sqlite3
+import time
 from pathlib import Path
 
 import cv2
@@ -14,6 +17,8 @@ import networkx as nx
 import numpy as np
 import pytest
 from conftest import tamper
+from fuzz_cases import map_signature as map_sig
+from fuzz_cases import reseal
 from map_synth import FAST, write_out_and_back
 
 import topomap.store as store
@@ -188,18 +193,25 @@ def test_newer_schema_asks_to_upgrade(copy):
 
 def test_damaged_content(copy):
     tamper(copy, "UPDATE feature SET keypoints = x'0011' WHERE node_id = 1")
-    with pytest.raises(MapFormatError, match="keypoints of node 1 does not decode"):
+    with pytest.raises(MapFormatError, match="row 1 of table feature fails its checksum"):
+        load_map(copy)
+    reseal(copy)  # an attacker who recomputes the checksums meets the checks behind them
+    with pytest.raises(MapFormatError, match="keypoints of node 1 holds 2 bytes"):
         load_map(copy)
 
 
 def test_damaged_header(copy):
     tamper(copy, "UPDATE meta SET value = '{\"fx\": ' WHERE key = 'camera'")
-    with pytest.raises(MapFormatError, match="header is not valid JSON"):
+    with pytest.raises(MapFormatError, match="row camera of table meta fails its checksum"):
+        load_map(copy)
+    reseal(copy)
+    with pytest.raises(MapFormatError, match="header entry 'camera' is not valid JSON"):
         load_map(copy)
 
 
 def test_wrong_format_name(copy):
     tamper(copy, "UPDATE meta SET value = '\"something-else\"' WHERE key = 'format'")
+    reseal(copy)
     with pytest.raises(MapFormatError, match="not a topomap map"):
         load_map(copy)
 
@@ -214,7 +226,7 @@ def test_check_writable(tmp_path):
     with pytest.raises(DatasetError, match="already exists; use --force"):
         check_writable(tmp_path / "m.topomap")
     assert check_writable(tmp_path / "m.topomap", overwrite=True) == tmp_path / "m.topomap"
-    with pytest.raises(DatasetError, match="cannot append.*does not exist"):
+    with pytest.raises(DatasetError, match="does not exist; build it first"):
         check_writable(tmp_path / "new.topomap", append=True)
 
 
@@ -228,7 +240,7 @@ def test_save_refuses_to_overwrite(built, copy):
     assert load_map(copy).edges == m.edges
 
 
-@pytest.mark.parametrize("stage", ["_insert_nodes", "_insert_frames", "_write_meta_and_index"])
+@pytest.mark.parametrize("stage", ["_node_rows", "_frame_rows", "_write_meta_and_arrays"])
 def test_interrupted_save_leaves_nothing_behind(built, copy, monkeypatch, stage):
     m, _ = built
     folder = copy.parent
@@ -252,6 +264,7 @@ def test_interrupted_update_rolls_back(built, copy, monkeypatch):
     grown = load_map(copy)
     n0, f0 = grown.next_node_id(), len(grown.frames)
     extra = grown.nodes[0]
+    grown.sequences.append({"source": "extra"})
     grown.add_node(Node(n0, 1, f0, "extra.png", extra.features, extra.thumbnail))
     grown.frames.append(FrameRecord(f0, 1, 0, "extra.png", n0))
     grown.add_edge(Edge(0, n0, EdgeKind.LOOP, 99, 0.5))
@@ -259,7 +272,7 @@ def test_interrupted_update_rolls_back(built, copy, monkeypatch):
     def interrupt(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(store, "_upsert_edges", interrupt)  # after the node and frame rows went in
+    monkeypatch.setattr(store, "_edge_rows", interrupt)  # after the node and frame rows went in
     with pytest.raises(KeyboardInterrupt):
         update_map(grown, copy, first_new_node=n0, first_new_frame=f0)
     assert copy.read_bytes() == before
@@ -294,3 +307,224 @@ def test_export_graphml_loads_back(built, tmp_path):
     assert g.nodes[0]["keyframe"] == n0.source and n0.source in g.nodes[0]["frames"].split(";")
     e = next(iter(m.edges.values()))
     assert g.edges[e.a, e.b]["kind"] == e.kind.value and g.edges[e.a, e.b]["inliers"] == e.inliers
+
+
+# ----------------------------------------------------------------------------- the validating reader
+def test_views_triggers_and_extra_tables_are_refused(copy):
+    tamper(copy, "CREATE TRIGGER t AFTER INSERT ON node BEGIN DELETE FROM edge; END")
+    with pytest.raises(MapFormatError, match="holds a trigger 't' that topomap never writes.*rebuild"):
+        load_map(copy)
+
+
+def test_recursive_view_is_refused_before_any_query(copy):
+    tamper(copy, "ALTER TABLE frame RENAME TO frame_old",
+           "CREATE VIEW frame AS WITH RECURSIVE c(x) AS (SELECT 0 UNION ALL SELECT x + 1 FROM c) "
+           "SELECT x AS id, 0 AS sequence, x AS seq_index, 'a' AS source, NULL AS node_id, 'ok' AS status, 0 AS crc FROM c")
+    with pytest.raises(MapFormatError, match="holds a view 'frame'"):
+        load_map(copy)
+
+
+def test_checksums_cover_every_table(copy):
+    for sql in ("UPDATE node SET source = 'x.png' WHERE id = 0", "UPDATE edge SET inliers = inliers + 1",
+                "UPDATE frame SET seq_index = seq_index + 1 WHERE id = 0", "UPDATE array SET shape = shape WHERE 0",
+                "UPDATE meta SET value = '[]' WHERE key = 'sequences'"):
+        c = Path(shutil.copy(copy, copy.with_name("c.topomap")))
+        tamper(c, sql)
+        if "WHERE 0" in sql:
+            load_map(c)  # nothing changed: still fine
+            continue
+        with pytest.raises(MapFormatError, match="fails its checksum"):
+            load_map(c)
+    data = load_map(copy, images=True)
+    con = sqlite3.connect(copy)
+    image = bytearray(con.execute("SELECT image FROM node WHERE id = 1").fetchone()[0])
+    image[len(image) // 2] ^= 0x40
+    con.execute("UPDATE node SET image = ? WHERE id = 1", (bytes(image),))
+    con.commit()
+    con.close()
+    load_map(copy)  # the image is read on demand only...
+    with pytest.raises(MapFormatError, match="image of node 1 fails its checksum"):
+        load_map(copy, images=True)  # ... and checked then
+    with pytest.raises(MapFormatError, match="image of node 1 fails its checksum"):
+        load_node_image(copy, 1)
+    assert data.nodes[1].image is not None
+
+
+def test_lost_rows_are_noticed(copy):
+    tamper(copy, "DELETE FROM frame WHERE id = (SELECT max(id) FROM frame)")  # every row left is intact
+    with pytest.raises(MapFormatError, match="frame table holds .* rows, the header says"):
+        load_map(copy)
+
+
+def test_other_modules_meta_keys_and_named_arrays_round_trip(built, tmp_path):
+    m, path = built
+    m2 = load_map(path)
+    m2.meta["calibration"] = {"model": "logistic", "a": 1.5, "b": -0.25}
+    m2.meta["experiences"] = [{"name": "winter", "nodes": [1, 2]}]
+    m2.arrays["calibration_table"] = np.linspace(0, 1, 11, dtype=np.float32)
+    p = save_map(m2, tmp_path / "ext.topomap")
+    back = load_map(p)
+    assert back.meta["calibration"] == m2.meta["calibration"] and back.meta["experiences"] == m2.meta["experiences"]
+    np.testing.assert_array_equal(back.arrays["calibration_table"], m2.arrays["calibration_table"])
+    with store.open_for_update(p) as u:  # a write by this module keeps what others stored
+        u.commit()
+    again = load_map(p)
+    assert again.meta["calibration"] == m2.meta["calibration"] and "calibration_table" in again.arrays
+    m2.arrays["bow_x"] = np.zeros(2)
+    with pytest.raises(store.TopomapError, match="reserved"):
+        save_map(m2, tmp_path / "clash.topomap")
+
+
+def test_unknown_array_is_validated(copy):
+    tamper(copy, "INSERT INTO array (name, dtype, shape, data, crc) VALUES ('calib', '<f8', '[3]', x'00', 0)")
+    reseal(copy)
+    with pytest.raises(MapFormatError, match="array 'calib' holds 1 bytes, its shape \\[3\\] needs 24"):
+        load_map(copy)
+
+
+def test_relative_motion_is_json_or_null(copy):
+    tamper(copy, "UPDATE edge SET relative_motion = '{\"x_m\": 0.5, \"theta_rad\": 0.1}' WHERE a = 0")
+    reseal(copy)
+    load_map(copy)  # a JSON object: accepted (issue 13's code interprets it)
+    tamper(copy, "UPDATE edge SET relative_motion = '{\"x_m\": ' WHERE a = 0")
+    reseal(copy)
+    with pytest.raises(MapFormatError, match="relative motion of edge 0-1 is not valid JSON"):
+        load_map(copy)
+
+
+def test_non_utf8_file_names_are_stored_escaped(built, tmp_path):
+    m, _ = built
+    m2 = load_map(save_map(m, tmp_path / "a.topomap"))
+    m2.frames[0] = FrameRecord(0, m2.frames[0].sequence, 0, "caf\udce9.png", m2.frames[0].node, "ok")
+    back = load_map(save_map(m2, tmp_path / "b.topomap"))
+    assert back.frames[0].source == "caf\\xe9.png"
+
+
+# ----------------------------------------------------------------------------- writers, locks, crashes
+def test_a_second_writer_waits_then_is_refused(copy):
+    with store.open_for_update(copy) as u:
+        t0 = time.perf_counter()
+        with pytest.raises(store.MapConflictError, match="being written by another topomap command"):
+            with store.open_for_update(copy, timeout_s=0.3):
+                pass
+        assert time.perf_counter() - t0 < 5
+        load_map(copy)  # readers are not blocked by a writer that has not committed yet
+        u.commit()
+    with store.open_for_update(copy, timeout_s=0.3) as u:  # released: the next writer goes ahead
+        u.commit()
+
+
+def test_update_map_refuses_a_map_that_changed_since_it_was_loaded(copy):
+    a, b = load_map(copy), load_map(copy)
+    for m, tag in ((a, "first"), (b, "second")):
+        m.sequences.append({"source": tag})
+    update_map(a, copy, first_new_node=a.next_node_id(), first_new_frame=len(a.frames))
+    with pytest.raises(store.MapConflictError, match="changed since it was loaded"):
+        update_map(b, copy, first_new_node=b.next_node_id(), first_new_frame=len(b.frames))
+    assert [s.get("source") for s in load_map(copy).sequences][-1] == "first"
+
+
+def _die_mid_commit(path: Path) -> None:
+    """In a forked child: an update whose pages reach the file (tiny cache), killed before COMMIT."""
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        try:
+            configure = store._configure
+            store._configure = lambda con, *, readonly: (configure(con, readonly=readonly), con.execute("PRAGMA cache_size = 2"))
+            store._write_meta_and_arrays = lambda *a, **k: os.kill(os.getpid(), signal.SIGKILL)
+            with store.open_for_update(path) as u:
+                u.map.sequences.append({"source": "killed"})
+                extra = u.map.nodes[0]
+                for i in range(3):
+                    u.map.add_node(Node(u.map.next_node_id(), 1, len(u.map.frames), f"k{i}.png", extra.features, extra.thumbnail, extra.image))
+                u.commit()
+        finally:
+            os._exit(3)
+    _, status = os.waitpid(pid, 0)
+    assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGKILL
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork")
+def test_hot_journal_of_a_killed_writer_is_rolled_back_without_user_action(built, copy):
+    before = map_sig(load_map(copy, images=True))
+    _die_mid_commit(copy)
+    journal = copy.with_name(copy.name + "-journal")
+    assert journal.exists() and journal.stat().st_size > 0  # a hot journal, as kill -9 leaves it
+    assert map_sig(load_map(copy, images=True)) == before  # rolled back on the next read
+    assert not journal.exists()
+    with store.open_for_update(copy) as u:  # and the next writer works
+        u.map.sequences.append({"source": "next"})
+        u.commit()
+    assert load_map(copy).sequences[-1] == {"source": "next"}
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork")
+def test_hot_journal_of_a_read_only_map_is_recovered_in_a_private_copy(copy, monkeypatch):
+    before = map_sig(load_map(copy, images=True))
+    _die_mid_commit(copy)
+    monkeypatch.setattr(store.os, "access", lambda p, mode: mode != os.W_OK)  # as for a read-only folder
+    listing, data = files_in(copy.parent), copy.read_bytes()
+    assert map_sig(load_map(copy, images=True)) == before
+    assert files_in(copy.parent) == listing and copy.read_bytes() == data  # nothing written beside it
+    with pytest.raises(DatasetError, match="read-only"):
+        check_writable(copy, append=True)
+
+
+def test_a_wal_mode_map_is_read_without_leaving_files(copy):
+    con = sqlite3.connect(copy)
+    con.execute("PRAGMA journal_mode = WAL")
+    con.close()
+    listing = files_in(copy.parent)
+    assert listing == ["copy.topomap"]
+    before = map_sig(load_map(copy, images=True))
+    assert files_in(copy.parent) == listing
+    writer = sqlite3.connect(copy)  # a WAL holding a commit that is not in the main file yet
+    writer.execute("PRAGMA wal_autocheckpoint = 0")
+    writer.execute("UPDATE node SET source = source WHERE id = 0")
+    writer.commit()
+    listing = files_in(copy.parent)
+    assert map_sig(load_map(copy, images=True)) == before
+    assert files_in(copy.parent) == listing
+    writer.close()
+
+
+def test_leftover_temporary_files_of_dead_processes_are_removed(copy, monkeypatch):
+    old = time.time() - 3600
+    dead = [copy.with_name(f".{copy.name}.999999.tmp"), copy.with_name(f".{copy.name}.999999.a1b2c3.tmp-journal")]
+    mine = copy.with_name(f".{copy.name}.{os.getpid()}.tmp")
+    recent = copy.with_name(f".{copy.name}.999998.tmp")
+    for p in (*dead, mine, recent):
+        p.write_bytes(b"x")
+    for p in (*dead, mine):
+        os.utime(p, (old, old))
+    monkeypatch.setattr(store, "_pid_alive", lambda pid: pid == os.getpid())
+    load_map(copy)
+    assert not any(p.exists() for p in dead) and mine.exists() and recent.exists()
+
+
+def test_an_orphan_journal_never_reaches_a_new_map(built, tmp_path):
+    m, _ = built
+    target = tmp_path / "new.topomap"
+    target.with_name("new.topomap-journal").write_bytes(os.urandom(4096))
+    save_map(m, target)
+    assert files_in(tmp_path) == ["new.topomap"]
+    assert load_map(target).edges == m.edges
+
+
+def test_replacing_a_map_being_written_is_refused(built, copy, monkeypatch):
+    m, _ = built
+    monkeypatch.setattr(store, "LOCK_TIMEOUT_S", 0.3)
+    before = copy.read_bytes()
+    with store.open_for_update(copy):
+        with pytest.raises(store.MapConflictError):
+            save_map(m, copy, overwrite=True)
+    assert copy.read_bytes() == before and files_in(copy.parent) == ["copy.topomap"]
+
+
+def test_object_arrays_are_never_stored(built, tmp_path):
+    m, path = built
+    m2 = load_map(path)
+    m2.arrays["objects"] = np.array([{"a": 1}, None], dtype=object)
+    with pytest.raises(store.TopomapError, match="only numbers and booleans"):
+        save_map(m2, tmp_path / "o.topomap")
+    assert not (tmp_path / "o.topomap").exists() and files_in(tmp_path) == []

@@ -200,11 +200,16 @@ def _parse_matrix_text(text: str) -> np.ndarray | None:
 def load_camera(path: str | Path) -> CameraIntrinsics:
     """Read intrinsics from a YAML / JSON / OpenCV YAML / 3x3 text / KITTI calib file."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise DatasetError(f"camera file {path} does not exist; give a YAML/JSON file with fx, fy, cx, cy")
+    if path.is_dir():
+        raise DatasetError(f"--camera {path} is a folder; give a YAML/JSON file with fx, fy, cx, cy")
+    from topomap.images import read_file_bytes
+
+    data = read_file_bytes(path, max_bytes=1 << 20, what="camera file")  # a FIFO or /dev/zero never ends
     try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as e:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as e:
         raise DatasetError(f"cannot read camera file {path}: {e}") from None
     # KITTI calib.txt: "P0: fx 0 cx tx 0 fy cy ty 0 0 1 tz"
     for line in text.splitlines():

@@ -29,6 +29,10 @@ __all__ = [
 ]
 
 
+#: Most keypoints per image: 100k SIFT descriptors already take 51 MB per image.
+MAX_FEATURES = 100_000
+
+
 @dataclass(frozen=True)
 class FeatureConfig:
     """Local features (see :mod:`topomap.features`)."""
@@ -44,6 +48,8 @@ class FeatureConfig:
     def __post_init__(self) -> None:
         if self.max_features < 8:
             raise ConfigError(f"max_features={self.max_features} is too small; use at least 8")
+        if self.max_features > MAX_FEATURES:
+            raise ConfigError(f"max_features={self.max_features} is too large; use at most {MAX_FEATURES}")
         if self.resize_max_px is not None and self.resize_max_px < 32:
             raise ConfigError(f"resize_max_px={self.resize_max_px} is too small; use at least 32")
 

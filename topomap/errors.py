@@ -15,6 +15,7 @@ __all__ = [
     "TopomapError",
     "DatasetError",
     "MapFormatError",
+    "MapConflictError",
     "ConfigError",
     "NodeNotFoundError",
     "NoRouteError",
@@ -33,6 +34,10 @@ class DatasetError(TopomapError):
 
 class MapFormatError(TopomapError):
     """A file is not a topomap map, is truncated, or was written by a newer topomap."""
+
+
+class MapConflictError(TopomapError):
+    """Another process is writing the map, or wrote it since it was loaded: nothing was written."""
 
 
 class ConfigError(TopomapError, ValueError):

@@ -113,7 +113,8 @@ class TopoMap:
     frames: list[FrameRecord] = field(default_factory=list)
     sequences: list[dict] = field(default_factory=list)  # per build run: source, frame count, time
     index: object | None = None  # retrieval.BowIndex (kept untyped to avoid an import cycle)
-    meta: dict = field(default_factory=dict)
+    meta: dict = field(default_factory=dict)  # JSON-able values; the map file keeps every key
+    arrays: dict[str, np.ndarray] = field(default_factory=dict)  # named numeric arrays kept in the map file
 
     # ------------------------------------------------------------------ access
     @property

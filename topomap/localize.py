@@ -332,7 +332,12 @@ class Localizer:
         score, checks = self.total_score(q)
         p = self.likelihood(score)
         p /= p.sum()
-        return self.answer(p, score, checks, score)
+        loc = self.answer(p, score, checks, score)
+        if loc.status is LocalizationStatus.LOCALIZED and loc.inliers < self.map.config.match.min_inliers:
+            # never confidently wrong: one frame whose best node was not verified geometrically (a
+            # query too small for features, or no candidate verified) is not a place recognised
+            loc = dataclasses.replace(loc, status=LocalizationStatus.UNKNOWN)
+        return loc
 
     def localize_all(self, images: Iterable[np.ndarray]) -> Iterator[Localization]:
         for img in images:

@@ -203,7 +203,8 @@ class Vocabulary:
             centres.append(arrays[f"vocab_centres_{len(centres)}"])
         for i in range(1, len(centres)):
             ch = arrays.get(f"vocab_children_{i}")
-            if ch is None or ch.ndim != 2 or len(ch) != len(centres[i - 1]) or (ch.size and ch.max() >= len(centres[i])):
+            if (ch is None or ch.ndim != 2 or ch.dtype.kind not in "iu" or len(ch) != len(centres[i - 1])
+                    or (ch.size and (ch.min() < 0 or ch.max() >= len(centres[i])))):
                 raise MapFormatError("map vocabulary is damaged; rebuild the index with `topomap index MAP`")
             children.append(ch.astype(np.int32))
         if not centres:
@@ -242,8 +243,11 @@ class BowIndex:
         self.indptr = np.asarray(indptr, np.int64)
         self.rows = np.asarray(rows, np.int32)
         self.counts = np.asarray(counts, np.float32)
-        if len(self.indptr) != vocabulary.size + 1 or self.indptr[-1] != len(self.rows) or len(self.rows) != len(self.counts):
+        if (len(self.indptr) != vocabulary.size + 1 or self.indptr[0] != 0 or self.indptr[-1] != len(self.rows)
+                or len(self.rows) != len(self.counts) or np.any(np.diff(self.indptr) < 0)):
             raise MapFormatError("map index is damaged (posting lists do not add up); rebuild it with `topomap index MAP`")
+        if len(np.unique(self.node_ids)) != len(self.node_ids) or (len(self.counts) and not (self.counts > 0).all()):
+            raise MapFormatError("map index is damaged (repeated nodes or empty postings); rebuild it with `topomap index MAP`")
         if len(self.rows) and (self.rows.min() < 0 or self.rows.max() >= len(self.node_ids)):
             raise MapFormatError("map index is damaged (postings name unknown nodes); rebuild it with `topomap index MAP`")
         self._row_of = {int(n): i for i, n in enumerate(self.node_ids)}

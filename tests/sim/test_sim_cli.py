@@ -77,10 +77,17 @@ def test_render(runner, cli_app, tmp_path):
         (["sim", "render", "default", "-o", "{tmp}/v.png", "--pose", "1,2"], "--pose"),
         (["sim", "render", "default", "-o", "{tmp}/v.png", "--pose", "-50,-50,0"], "inside a wall"),
         (["sim", "teach"], "Missing option"),
+        (["sim", "teach", "-o", "{tmp}/a", "--spacing", "0.000001"], "too small; use at least 0.01"),
+        (["sim", "show-world", "default", "-o", "{tmp}/w.txt"], "give a file name ending in one of .png"),
+        (["sim", "render", "default", "-o", "{tmp}/w.txt"], "give a file name ending in one of .png"),
+        (["sim", "make-world", "--seed", "-1", "-o", "{tmp}/w.json"], "world seed -1 must be an integer from 0"),
+        (["sim", "render", "/dev/zero", "-o", "{tmp}/v.png"], "not a regular file"),
+        (["sim", "render", "{tmp}/nested.json", "-o", "{tmp}/v.png"], "nests its JSON too deeply"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_1(runner, cli_app, tmp_path, args, message):
     (tmp_path / "corrupt.json").write_text("{oops")
+    (tmp_path / "nested.json").write_text("[" * 200_000 + "]" * 200_000)
     (tmp_path / "notworld.json").write_text('{"hello": 1}')
     res = runner.invoke(cli_app, [a.replace("{tmp}", str(tmp_path)) for a in args])
     assert res.exit_code == 1, res.output

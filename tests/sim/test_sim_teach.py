@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from topomap.camera import load_camera
-from topomap.errors import DatasetError
+from topomap.errors import ConfigError, DatasetError
 from topomap.sim.simulator import default_camera
 from topomap.sim.teach import PurePursuit, TeachConfig, teach
 from topomap.sim.world import load_world
@@ -105,3 +105,16 @@ def test_teach_config_validation():
         with pytest.raises(Exception) as e:
             TeachConfig(**bad)
         assert "teach" in str(e.value)
+
+
+def test_teach_runs_stay_countable(world, tmp_path, monkeypatch):
+    for kw, match in (({"spacing_m": 1e-6}, "too small"), ({"dt_s": 1e-7}, "too small"), ({"speed_mps": 1e-9}, "too small"),
+                      ({"turn_spacing_deg": 0.0}, "positive")):
+        with pytest.raises(ConfigError, match=match):
+            TeachConfig(**kw)
+    import sys
+
+    monkeypatch.setattr(sys.modules["topomap.sim.teach"], "MAX_TEACH_IMAGES", 100)
+    with pytest.raises(ConfigError, match="images, more than 100; use a larger --spacing"):
+        teach(world, "loop", tmp_path / "t", spacing_m=0.05)
+    assert not (tmp_path / "t" / "poses.csv").exists()

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
+import sys
+import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -179,3 +183,66 @@ def test_world_validation():
     data = good.to_dict()
     json.dumps(data)  # JSON-able
     assert World.from_dict(data) == good
+
+
+def test_hostile_world_files_are_refused_before_anything_is_built(tmp_path, world):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from fuzz_cases import world_attacks
+
+    expected = {
+        "floor_texture_negative_seed": "needs a seed from 0", "texture_escape": "inside its texture folder",
+        "texture_absolute": "inside its texture folder", "marker_colour_huge": "between 0 and 255",
+        "marker_radius_inf": "marker radius_m", "wall_height_huge": "wall height", "walls_not_list": "must be",
+        "wall_short_row": "a wall must be", "many_walls": "6000 walls, more than the 5000",
+        "route_huge": "at most 10000 waypoints", "seed_text": "seed must be", "name_huge": "longer than 200",
+        "nested_arrays": "nests its JSON too deeply",
+    }
+    attacks = world_attacks(world.to_dict())
+    assert set(attacks) == set(expected)
+    for name, w in attacks.items():
+        f = tmp_path / f"{name}.json"
+        f.write_text(w if isinstance(w, str) else json.dumps(w))
+        t0 = time.perf_counter()
+        with pytest.raises(DatasetError, match=expected[name]):
+            load_world(f)
+        assert time.perf_counter() - t0 < 5.0, name
+
+
+def test_world_files_that_never_end_are_not_read(tmp_path):
+    sparse = tmp_path / "sparse.json"
+    with open(sparse, "wb") as fh:
+        fh.truncate(2 << 30)  # 2 GB, no disk used
+    with pytest.raises(DatasetError, match="2048 MB, more than the 16 MB"):
+        load_world(sparse)
+    os.mkfifo(tmp_path / "fifo.json")
+    for f in (tmp_path / "fifo.json", Path("/dev/zero")):
+        with pytest.raises(DatasetError, match="not a regular file"):
+            resolve_world(str(f))
+    with pytest.raises(DatasetError, match="is a folder"):
+        load_world(tmp_path)
+
+
+def test_texture_keys_stay_in_their_folder(tmp_path):
+    for key in ("user:../x.jpg", "user:/etc/passwd", "photo:../../etc/x", "user:..", "user:a/b.png"):
+        with pytest.raises(DatasetError, match="inside its texture folder"):
+            tx.texture_image(key, tmp_path)
+    with pytest.raises(DatasetError, match="seed from 0"):
+        tx.texture_image("proc:tiles:-5")
+    tx.check_texture_key("user:wall one.jpg:flip")
+
+
+def test_texture_photograph_bomb_is_skipped_with_its_reason(tmp_path, caplog):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from fuzz_cases import png_bomb
+
+    (tmp_path / "bomb.png").write_bytes(png_bomb(20000, 20000, channels=3))
+    cv2.imwrite(str(tmp_path / "ok.jpg"), np.full((64, 64, 3), 128, np.uint8))
+    assert tx.photo_keys(tmp_path) == ["user:ok.jpg"]
+    assert "declares 20000x20000 pixels" in caplog.text
+
+
+def test_negative_seeds_are_refused():
+    with pytest.raises(DatasetError, match="from 0 to 2"):
+        generate_world(-1)
+    with pytest.raises(DatasetError, match="from 0 to 2"):
+        resolve_world("-3")

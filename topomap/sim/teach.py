@@ -36,6 +36,10 @@ __all__ = ["TeachConfig", "TeachResult", "PurePursuit", "teach"]
 log = logging.getLogger(__name__)
 
 
+#: Most images one teach run records (a 200 m route every 1 cm); more is a typo in --spacing.
+MAX_TEACH_IMAGES = 20_000
+
+
 @dataclass(frozen=True)
 class TeachConfig:
     """How the teach driver drives and when it takes a picture."""
@@ -57,6 +61,12 @@ class TeachConfig:
             raise ConfigError("teach overlap_m must not be negative")
         if self.spacing_m > 5.0:
             raise ConfigError(f"teach spacing {self.spacing_m} m is too coarse for a map; use at most 5 m")
+        # lower bounds: a teach run's images and control steps must stay countable
+        for name, lo in (("spacing_m", 0.01), ("turn_spacing_deg", 0.5), ("speed_mps", 0.01), ("dt_s", 0.001)):
+            if getattr(self, name) < lo:
+                raise ConfigError(f"teach {name}={getattr(self, name)!r} is too small; use at least {lo}")
+        if self.speed_mps > 5.0 or self.dt_s > 1.0:
+            raise ConfigError("teach speed_mps must be at most 5 m/s and dt_s at most 1 s")
 
 
 @dataclass(frozen=True)
@@ -208,6 +218,10 @@ def teach(
         raise DatasetError(f"cannot write to {out}: {e.strerror or e}") from None
 
     path = _route_path(r, cfg.overlap_m)
+    length = float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum())
+    if length / cfg.spacing_m > MAX_TEACH_IMAGES:
+        raise ConfigError(f"route {route!r} ({length:.0f} m) at one image every {cfg.spacing_m} m would take about "
+                          f"{length / cfg.spacing_m:.0f} images, more than {MAX_TEACH_IMAGES}; use a larger --spacing")
     from topomap.motion import VehicleKind, vehicle_kind
 
     follower = PurePursuit(path, cfg.lookahead_m, cfg.speed_mps, cfg.max_turn_rps, omni=vehicle_kind(vehicle) is VehicleKind.OMNI)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import re
 from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
@@ -33,6 +34,7 @@ __all__ = [
     "builtin_texture_dir",
     "photo_keys",
     "texture_image",
+    "check_texture_key",
     "texture_width_m",
     "FLOOR_TILE_M",
     "CEILING_TILE_M",
@@ -70,8 +72,10 @@ def photo_keys(texture_dir: str | Path | None = None) -> list[str]:
         return [f"photo:{p.stem}" for p in _photo_files(builtin_texture_dir())]
     keys = []
     for p in _photo_files(Path(texture_dir)):
-        if _read_photo(str(p)) is None:
-            log.warning("skipping unreadable texture photograph %s", p)
+        try:
+            _read_photo(str(p))
+        except DatasetError as e:
+            log.warning("skipping a texture photograph: %s", e)
             continue
         keys.append(f"user:{p.name}")
     if not keys:
@@ -79,11 +83,20 @@ def photo_keys(texture_dir: str | Path | None = None) -> list[str]:
     return keys
 
 
+#: Largest photograph decoded as a texture [pixels] (a 48 MP phone photo); it is shrunk to 512 px.
+MAX_PHOTO_PIXELS = 50_000_000
+
+
 @functools.lru_cache(maxsize=64)
-def _read_photo(path: str) -> np.ndarray | None:
-    img = cv2.imread(path, cv2.IMREAD_COLOR)
-    if img is None or img.shape[0] < 8 or img.shape[1] < 8:
-        return None
+def _read_photo(path: str) -> np.ndarray:
+    """A photograph as ``(H, W, 3) uint8`` RGB, longest side at most 512 px; raises :class:`DatasetError`."""
+    from topomap.images import decode_image, read_file_bytes
+
+    # through the image gate: a photograph declaring 30000 x 30000 px is refused undecoded
+    img = decode_image(read_file_bytes(path, what="texture photograph"), max_pixels=MAX_PHOTO_PIXELS, color=True,
+                       what=f"texture photograph {Path(path).name}")
+    if img.shape[0] < 8 or img.shape[1] < 8:
+        raise DatasetError(f"texture photograph {Path(path).name} is smaller than 8x8 px")
     # Large user photographs are shrunk: TinyRenderer samples textures without filtering anyway.
     scale = 512.0 / max(img.shape[:2])
     if scale < 1.0:
@@ -93,8 +106,34 @@ def _read_photo(path: str) -> np.ndarray | None:
     return img
 
 
+_BARE_NAME = re.compile(r"[^/\\\x00]+")
+
+
+def check_texture_key(key: str) -> None:
+    """Raise :class:`DatasetError` unless ``key`` is a well-formed texture key: ``photo:NAME`` and
+    ``user:FILE`` name a file directly inside their folder (no path, no ``..``), ``proc:KIND:SEED``
+    a known kind and a seed from 0 to 2**63 - 1."""
+    if not isinstance(key, str) or len(key) > 300:
+        raise DatasetError(f"texture key {str(key)[:40]!r} is not a short text")
+    kind, _, rest = key.partition(":")
+    if kind in ("photo", "user"):
+        name = rest[: -len(":flip")] if rest.endswith(":flip") else rest
+        if not _BARE_NAME.fullmatch(name) or name in (".", ".."):
+            raise DatasetError(f"texture key {key[:60]!r} must name a file inside its texture folder, without a path")
+        return
+    if kind == "proc":
+        name, _, seed = rest.partition(":")
+        if name not in PROCEDURAL:
+            raise unknown_choice("procedural texture", name, PROCEDURAL)
+        if not seed.isdigit() or int(seed) >= 2**63:
+            raise DatasetError(f"texture key {key[:60]!r} needs a seed from 0 to 2**63 - 1, like 'proc:{name}:3'")
+        return
+    raise DatasetError(f"texture key {key[:60]!r} is not of the form photo:NAME[:flip], user:FILE[:flip] or proc:KIND:SEED")
+
+
 def texture_image(key: str, texture_dir: str | Path | None = None) -> np.ndarray:
     """The ``(H, W, 3) uint8`` RGB pixels of texture ``key`` (read-only array)."""
+    check_texture_key(key)
     kind, _, rest = str(key).partition(":")
     if kind in ("photo", "user") and rest.endswith(":flip"):
         img = texture_image(f"{kind}:{rest[: -len(':flip')]}", texture_dir)[:, ::-1]
@@ -103,18 +142,16 @@ def texture_image(key: str, texture_dir: str | Path | None = None) -> np.ndarray
         return img
     if kind == "photo":
         path = builtin_texture_dir() / f"{rest}.jpg"
-        img = _read_photo(str(path)) if path.is_file() else None
-        if img is None:
+        if not path.is_file():
             raise DatasetError(f"texture {key!r} is not among the shipped photographs; reinstall topomap or regenerate the world")
-        return img
+        return _read_photo(str(path))
     if kind == "user":
         if texture_dir is None:
             raise DatasetError(f"texture {key!r} needs the user's texture folder; give --textures DIR")
         path = Path(texture_dir) / rest
-        img = _read_photo(str(path)) if path.is_file() else None
-        if img is None:
-            raise DatasetError(f"texture photograph {path} is missing or unreadable; restore it or regenerate the world")
-        return img
+        if not path.is_file():
+            raise DatasetError(f"texture photograph {path} is missing; restore it or regenerate the world")
+        return _read_photo(str(path))
     if kind == "proc":
         name, _, seed = rest.partition(":")
         if name not in PROCEDURAL:

@@ -53,6 +53,18 @@ WALL_THICKNESS_M = 0.5  # solid margin kept between two free spaces [m]
 DOOR_WIDTH_M = 1.5
 _MAX_TILE_M = 3.0  # floor/ceiling rectangles are cut to at most this side, for visibility culling [m]
 
+#: Limits of a world file (the largest generated world, 6 x 6 junctions with 20 rooms, has 383 walls,
+#: 225 free rectangles and a 30 KB file): a stranger's file beyond them is refused before it is built.
+MAX_WORLD_BYTES = 16 << 20
+MAX_WALLS = 5000
+MAX_FREE_RECTS = 20_000
+MAX_ROUTES = 100
+MAX_WAYPOINTS = 10_000
+MAX_MARKERS = 1000
+MAX_TEXTURES = 1024  # distinct texture keys: each becomes an image in memory
+MAX_EXTENT_M = 10_000.0  # |coordinate| bound [m]
+MAX_WALL_HEIGHT_M = 100.0
+
 
 @dataclass(frozen=True)
 class Wall:
@@ -229,6 +241,7 @@ class World:
         if version > WORLD_VERSION:
             raise DatasetError(f"{source} was written by a newer topomap (world format {version}); upgrade topomap")
         try:
+            _check_limits(d)
             return cls(
                 walls=tuple(Wall(float(a), float(b), float(c), float(e), str(t)) for a, b, c, e, t in d["walls"]),
                 free=tuple(Rect(*(float(v) for v in f)) for f in d["free"]),
@@ -274,18 +287,92 @@ def _r(v: float) -> float:
     return round(float(v), 6)
 
 
+def _check_limits(d: dict) -> None:
+    """Counts, ranges and texture keys of a world dict, before anything is built from it (a file
+    from elsewhere may hold a million walls, 1e300 m coordinates or a texture path out of its folder)."""
+    def seq(name, limit):
+        v = d.get(name, [] if name != "routes" else {})
+        if not isinstance(v, (list, dict)):
+            raise DatasetError(f"{name!r} must be a list")
+        if len(v) > limit:
+            raise DatasetError(f"it has {len(v)} {name}, more than the {limit} topomap builds")
+        return v
+
+    walls = seq("walls", MAX_WALLS)
+    free = seq("free", MAX_FREE_RECTS)
+    routes = seq("routes", MAX_ROUTES)
+    markers = seq("markers", MAX_MARKERS)
+    if not isinstance(routes, dict):
+        raise DatasetError("'routes' must map route names to waypoint lists")
+
+    def finite(v, what, lo=-MAX_EXTENT_M, hi=MAX_EXTENT_M):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and lo <= v <= hi):
+            raise DatasetError(f"{what} {str(v)[:30]} is not a number between {lo:g} and {hi:g}")
+
+    for w in walls:
+        if not isinstance(w, list) or len(w) != 5:
+            raise DatasetError("a wall must be [x0, z0, x1, z1, texture]")
+        for v in w[:4]:
+            finite(v, "wall coordinate")
+    for f in free:
+        if not isinstance(f, list) or len(f) != 4:
+            raise DatasetError("a free rectangle must be [x0, z0, x1, z1]")
+        for v in f:
+            finite(v, "free-floor coordinate")
+    for name, r in routes.items():
+        pts = r.get("waypoints") if isinstance(r, dict) else None
+        if not isinstance(pts, list) or len(pts) > MAX_WAYPOINTS:
+            raise DatasetError(f"route {str(name)[:40]!r} must hold at most {MAX_WAYPOINTS} waypoints")
+        for pt in pts:
+            if not isinstance(pt, list) or len(pt) != 2:
+                raise DatasetError(f"route {str(name)[:40]!r} has a waypoint that is not [x, z]")
+            for v in pt:
+                finite(v, "waypoint coordinate")
+    for mk in markers:
+        if not isinstance(mk, dict):
+            raise DatasetError("a marker must be an object with x, z, height_m")
+        for k in ("x", "z"):
+            finite(mk.get(k), f"marker {k}")
+        finite(mk.get("height_m"), "marker height_m", 0.0, MAX_WALL_HEIGHT_M)
+        finite(mk.get("radius_m", 0.03), "marker radius_m", 1e-4, 10.0)
+        colour = mk.get("color", [255, 0, 255])
+        if not isinstance(colour, list) or len(colour) != 3:
+            raise DatasetError("a marker colour must be [r, g, b]")
+        for c in colour:
+            finite(c, "marker colour channel", 0, 255)
+    finite(d.get("wall_height_m", WALL_HEIGHT_M), "wall height", 0.1, MAX_WALL_HEIGHT_M)
+    if d.get("seed") is not None and (isinstance(d["seed"], bool) or not isinstance(d["seed"], int) or d["seed"] < 0):
+        raise DatasetError("the world seed must be a non-negative integer")
+    if len(str(d.get("name", ""))) > 200:
+        raise DatasetError("the world name is longer than 200 characters")
+    keys = {d.get("floor_texture", "proc:tiles:0"), d.get("ceiling_texture", "proc:ceiling:0")}
+    keys |= {w[4] for w in walls}
+    if len(keys) > MAX_TEXTURES:
+        raise DatasetError(f"it uses {len(keys)} distinct textures, more than the {MAX_TEXTURES} topomap loads")
+    for k in keys:
+        tx.check_texture_key(k)
+
+
 def load_world(path: str | Path) -> World:
     """Read a world saved by :meth:`World.save`."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise DatasetError(f"world file {path} does not exist; create one with 'topomap sim make-world' or give a seed")
+    if not path.is_file():
+        kind = "a folder" if path.is_dir() else "not a regular file (a FIFO or a device?)"
+        raise DatasetError(f"world {path} is {kind}; give a world JSON file (topomap sim make-world) or a seed")
+    from topomap.images import read_file_bytes
+
+    data = read_file_bytes(path, max_bytes=MAX_WORLD_BYTES, what="world file")
     try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError) as e:
+        parsed = json.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as e:
         raise DatasetError(f"cannot read world file {path}: {e}") from None
     except json.JSONDecodeError as e:
         raise DatasetError(f"world file {path} is not valid JSON ({e.msg} at line {e.lineno}); regenerate it") from None
-    return World.from_dict(data, source=f"world file {path}")
+    except RecursionError:
+        raise DatasetError(f"world file {path} nests its JSON too deeply; regenerate it") from None
+    return World.from_dict(parsed, source=f"world file {path}")
 
 
 def resolve_world(spec: str | int | Path | World | None, textures: str | Path | None = None) -> World:
@@ -300,6 +387,8 @@ def resolve_world(spec: str | int | Path | World | None, textures: str | Path | 
         return default_world(textures=textures)
     s = str(spec)
     if isinstance(spec, int) or s.lstrip("-").isdigit():
+        if int(s) < 0 or int(s) >= 2**63:
+            raise DatasetError(f"world seed {s} must be an integer from 0 to 2**63 - 1")
         return generate_world(int(s), textures=textures)
     path = Path(s)
     if not path.exists():
@@ -344,6 +433,8 @@ def generate_world(
     ``rooms``: rooms to attach (fewer if they do not fit); ``inner_corridor_prob``: chance of keeping
     each corridor off the perimeter; ``textures``: a folder of photographs for the walls.
     """
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) < 2**63:
+        raise DatasetError(f"world seed {seed!r} must be an integer from 0 to 2**63 - 1")
     nx_, nz_ = (int(v) for v in lattice)
     if not (2 <= nx_ <= 6 and 2 <= nz_ <= 6):
         raise DatasetError(f"lattice {lattice} must have 2 to 6 junctions along each axis")
