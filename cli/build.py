@@ -58,12 +58,13 @@ def _check_output_file(path: Path, suffixes: tuple[str, ...] | None = None) -> N
 
 @app.command()
 def build(
-    source: Path = typer.Argument(..., help="Image folder, video file, or text file listing image paths."),
+    source: Path = typer.Argument(..., help="Image folder, video file, text file listing image paths, or a ROS bag (.bag, .mcap, .db3, rosbag2 folder)."),
     output: Path = typer.Option(..., "--output", "-o", help="Map file to write (e.g. office.topomap)."),
     features: str = typer.Option(None, "--features", "-f", help=f"Local features: {', '.join(sorted(['orb', 'sift', 'akaze']))} [default: the preset's, orb]."),
     max_features: int = typer.Option(None, "--max-features", help="Keypoints kept per image."),
     resize: int = typer.Option(None, "--resize", help="Shrink images so the longest side is at most MAXPX.", metavar="MAXPX"),
-    camera: Path = typer.Option(None, "--camera", help="Intrinsics YAML/JSON (fx, fy, cx, cy[, distortion]); default: 60 deg field of view."),
+    camera: Path = typer.Option(None, "--camera", help="Intrinsics YAML/JSON (fx, fy, cx, cy[, distortion]); default: a bag's CameraInfo, else 60 deg field of view."),
+    topic: str = typer.Option(None, "--topic", help="Image topic of a ROS bag (sensor_msgs/Image or CompressedImage); omitted: the bag's only one."),
     preset: str = typer.Option("default", "--preset", help=f"Build preset: {', '.join(BUILD_PRESETS)}."),
     every: int = typer.Option(1, "--every", help="Use every N-th frame (videos and folders)."),
     append: bool = typer.Option(False, "--append", help="Add this sequence to the existing map, linked by loop closures."),
@@ -81,9 +82,11 @@ def build(
         config = dataclasses.replace(config, features=dataclasses.replace(config.features, max_features=max_features))
     if resize is not None:
         config = dataclasses.replace(config, features=dataclasses.replace(config.features, resize_max_px=resize))
-    seq = open_sequence(source, every)  # bad sources fail here, before the progress bar appears
+    seq = open_sequence(source, every, topic)  # bad sources fail here, before the progress bar appears
     check_writable(output, overwrite=force, append=append)
     cam = load_camera(camera) if camera is not None else None
+    if cam is not None and seq.camera is not None and not append:
+        err_console.print(f"[dim]--camera {camera.name} is used instead of {seq.camera.source}[/]")
     base = load_map(output, images=False) if append else None
     first_node = base.next_node_id() if base else 0
     first_frame = len(base.frames) if base else 0

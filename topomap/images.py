@@ -4,8 +4,9 @@ Every image enters topomap through :func:`read_image` / :func:`to_gray_u8`, whic
 ``(H, W) uint8`` grayscale array whatever the file held (8/16-bit, float, grey, BGR, BGRA), so the
 rest of the library never has to think about depth or channels.
 
-A *source* for :func:`open_sequence` is an image folder, a video file, or a text file listing one
-image path per line (relative paths are relative to the list file).
+A *source* for :func:`open_sequence` is an image folder, a video file, a text file listing one
+image path per line (relative paths are relative to the list file), or one of the sources
+registered in :mod:`topomap.sources` (ROS 1 / ROS 2 bags, MCAP).
 """
 
 from __future__ import annotations
@@ -15,11 +16,15 @@ import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from topomap.errors import DatasetError
+
+if TYPE_CHECKING:
+    from topomap.camera import CameraIntrinsics
 
 __all__ = [
     "IMAGE_EXTENSIONS",
@@ -210,6 +215,9 @@ class ImageSequence:
     objects, unreadable frames included with their ``error`` so callers can count and report them.
     """
 
+    #: intrinsics the source itself carries (a bag's CameraInfo), else None
+    camera: CameraIntrinsics | None = None
+
     def __init__(self, source: str | Path, every: int = 1):
         self.source = Path(source)
         if every < 1:
@@ -293,6 +301,14 @@ class ImageSequence:
             cap.release()
 
 
-def open_sequence(source: str | Path, every: int = 1) -> ImageSequence:
-    """An :class:`ImageSequence` over a folder, a video, a list file or a single image."""
+def open_sequence(source: str | Path, every: int = 1, topic: str | None = None) -> ImageSequence:
+    """An :class:`ImageSequence` over a folder, a video, a list file, a single image or a ROS bag
+    (``topic``: its image topic, see :mod:`topomap.sources`)."""
+    from topomap.sources import open_source  # the registered sources (bags: rosbags loads lazily)
+
+    seq = open_source(source, every, topic)
+    if seq is not None:
+        return seq
+    if topic is not None:
+        raise DatasetError(f"--topic is for ROS bags; {Path(source).name} is not a bag (.bag, .mcap, .db3 or a rosbag2 folder)")
     return ImageSequence(source, every)
