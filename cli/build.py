@@ -174,25 +174,41 @@ def info(
 @app.command()
 def show(
     map_path: Path = typer.Argument(..., metavar="MAP", help="Map file."),
-    output: Path = typer.Option(..., "--output", "-o", help="PNG to write."),
+    output: Path = typer.Option(None, "--output", "-o", help="Image to write (.png, .jpg, .svg, .pdf)."),
     poses: Path = typer.Option(None, "--poses", help="Ground-truth poses CSV (image,x,z[,theta] or image,cx,cy,cz) to place nodes."),
+    rerun: Path = typer.Option(None, "--rerun", help="Write a Rerun recording (FILE.rrd): the graph and each keyframe's thumbnail (needs the viz extra)."),
+    rerun_spawn: bool = typer.Option(False, "--rerun-spawn", help="Show the map in a Rerun viewer started for it (needs a display)."),
 ) -> None:
-    """Draw the map graph with node thumbnails (loop edges dashed red)."""
+    """Draw the map graph with node thumbnails (loop edges dashed red), as an image and/or in Rerun."""
     from topomap.groundtruth import read_poses
-    from topomap.viz import plot_map
 
+    if output is None and rerun is None and not rerun_spawn:
+        fail("give an image to write with -o FILE.png, a Rerun recording with --rerun FILE.rrd, or --rerun-spawn")
+    if output is not None:
+        _check_output_file(output, SHOW_FORMATS)
+    if rerun is not None:
+        _check_output_file(rerun, ("rrd",))
     m = load_map(map_path)
     positions = read_poses(poses).positions_2d() if poses else None
     if positions is not None:
         missing = [n.source for n in m.nodes.values() if n.source not in positions]
         if missing:
             raise DatasetError(f"{poses} has no pose for keyframe(s) {', '.join(missing[:3])}; is it the right file?")
-    _check_output_file(output, SHOW_FORMATS)
-    try:
-        plot_map(m, output, positions)
-    except OSError as e:
-        fail(f"cannot write {output}: {e.strerror or e}")
-    err_console.print(f"wrote {output}")
+    if output is not None:
+        from topomap.viz import plot_map
+
+        try:
+            plot_map(m, output, positions)
+        except OSError as e:
+            fail(f"cannot write {output}: {e.strerror or e}")
+        err_console.print(f"wrote {output}")
+    if rerun is not None or rerun_spawn:
+        from topomap.viz.rerun import log_map
+
+        node_xy = {n.id: positions[n.source] for n in m.nodes.values()} if positions is not None else None
+        log_map(m, rerun, spawn=rerun_spawn, positions=node_xy)
+        if rerun is not None:
+            err_console.print(f"wrote {rerun}")
 
 
 @app.command()
