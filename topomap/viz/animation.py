@@ -142,6 +142,7 @@ class CameraAnimation:
         self.max_shots = int(max_shots)
         self.shots: list[_Shot] = []
         self._steps = 0
+        self._last_time: float | None = None
         self._event: tuple[float, str, str] | None = None
 
     def __call__(self, ev) -> None:
@@ -150,14 +151,24 @@ class CameraAnimation:
         if ev.kind is not EventKind.STEP:
             self._event = (ev.time_s, ev.kind.value, f"{ev.time_s:6.1f} s  {ev.kind.value}: {ev.message}")
             return
-        self._steps += 1
-        if ev.image is None or ev.subgoal is None or (self._steps - 1) % self.every or len(self.shots) >= self.max_shots:
+        # a subgoal switch repeats the step at the same instant: it replaces that instant's shot, so
+        # shots stay evenly spaced in robot time (real-time playback)
+        again = self._last_time is not None and ev.time_s <= self._last_time
+        self._last_time = ev.time_s
+        if not again:
+            self._steps += 1
+        replace = again and bool(self.shots) and self.shots[-1].time_s == ev.time_s
+        if ev.image is None or ev.subgoal is None:
+            return
+        if not replace and (again or (self._steps - 1) % self.every or len(self.shots) >= self.max_shots):
             return
         m = step_matches(self.tmap, ev)
         event = None
         if self._event is not None and ev.time_s - self._event[0] <= EVENT_SHOWN_S:
             event = self._event[1:]
         ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(_rgb(ev.image), cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 92])
+        if replace:
+            self.shots.pop()
         self.shots.append(_Shot(ev.time_s, jpg.tobytes(), int(ev.subgoal), ev.servo.status.value if ev.servo else "",
                                 m, tuple(status_lines(ev, m)), event))
 

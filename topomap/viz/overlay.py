@@ -59,7 +59,12 @@ def keyframe_image(tmap: TopoMap, node: int) -> np.ndarray:
 
 
 def _fmt(x: float, spec: str, unit: str) -> str:
-    return f"{x:{spec}} {unit}" if math.isfinite(x) else "--"
+    if not math.isfinite(x):
+        return "--"
+    text = f"{x:{spec}}"
+    if text.startswith("-") and float(text) == 0.0:  # "-0.00": a tiny negative value reads as noise
+        text = "+" + text[1:] if "+" in spec else text[1:]
+    return f"{text} {unit}"
 
 
 def status_lines(ev, matches: StepMatches | None = None) -> list[str]:
@@ -76,6 +81,6 @@ def status_lines(ev, matches: StepMatches | None = None) -> list[str]:
                      f"   inliers {s.inliers}/{n}")
     c = ev.command
     if c is not None:
-        lines.append(f"command  v {c.v_f:+.2f} m/s" + (f"  v_h {c.v_h:+.2f} m/s" if abs(c.v_h) > 0 else "")
-                     + f"  w {c.omega:+.2f} rad/s")
+        lines.append(f"command  v {_fmt(c.v_f, '+.2f', 'm/s')}" + (f"  v_h {_fmt(c.v_h, '+.2f', 'm/s')}" if abs(c.v_h) > 0 else "")
+                     + f"  w {_fmt(c.omega, '+.2f', 'rad/s')}")
     return lines
