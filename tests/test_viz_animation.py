@@ -61,6 +61,7 @@ def recorded(short_run):
     return m, events, anim
 
 
+@pytest.mark.slow
 def test_step_events_carry_the_matches_the_servo_used(recorded):
     m, events, _ = recorded
     steps = [ev for ev in events if ev.kind is EventKind.STEP]
@@ -77,6 +78,7 @@ def test_step_events_carry_the_matches_the_servo_used(recorded):
     assert f"subgoal node {steps[0].subgoal}" in lines[0] and "estimated distance" in lines[1] and "command" in lines[2]
 
 
+@pytest.mark.slow
 def test_gif_is_wide_real_time_and_mp4_when_available(recorded, tmp_path):
     _, events, anim = recorded
     steps = [ev for ev in events if ev.kind is EventKind.STEP]
@@ -111,6 +113,7 @@ def test_gif_is_wide_real_time_and_mp4_when_available(recorded, tmp_path):
     assert n == len(anim.shots)
 
 
+@pytest.mark.slow
 def test_recorded_run_writes_gif_and_mp4(short_run):
     rec = short_run["record"]
     with Image.open(rec / "camera.gif") as im:

@@ -44,6 +44,7 @@ def recording(short_run):
     return read_rrd(short_run["rrd"]), short_run
 
 
+@pytest.mark.slow  # the short_run fixture drives the simulator (~30 s)
 def test_navigation_recording_holds_every_stream(recording):
     rec, run = recording
     moved = round(run["result"]["duration_s"] / 0.1)  # control periods the robot moved
@@ -77,6 +78,7 @@ def test_navigation_recording_holds_every_stream(recording):
     assert texts[0].startswith("planned") and texts[-1].startswith("arrived")
 
 
+@pytest.mark.slow  # the short_run fixture drives the simulator (~30 s)
 def test_estimated_trajectory_follows_the_true_one(recording):
     """The servo's pose placed at the subgoal keyframe's teach pose lies near the true pose: the
     drawing's frame conventions are right (a sign error would put it metres away)."""
@@ -96,6 +98,7 @@ def test_estimated_trajectory_follows_the_true_one(recording):
     assert float(np.median([np.linalg.norm(est[k] - truth[k]) for k in common])) < 0.15
 
 
+@pytest.mark.slow  # the short_run fixture drives the simulator (~30 s)
 def test_show_writes_the_map_recording(short_run, runner, cli_app, tmp_path):
     from topomap.store import load_map
 
@@ -110,6 +113,7 @@ def test_show_writes_the_map_recording(short_run, runner, cli_app, tmp_path):
     assert rows(rec["/world/map/nodes"]) == 1 and rows(rec["/world/map/selected"]) == len(m.nodes)
 
 
+@pytest.mark.slow  # the short_run fixture drives the simulator (~30 s)
 def test_rerun_bad_options_are_one_line(short_run, runner, cli_app, tmp_path, monkeypatch):
     m = str(short_run["map"])
     nav = ["navigate", m, "--goal", "2", "--start-node", "0"]
@@ -127,6 +131,7 @@ def test_rerun_bad_options_are_one_line(short_run, runner, cli_app, tmp_path, mo
     assert not (tmp_path / "r.rrd").exists()
 
 
+@pytest.mark.slow  # the short_run fixture drives the simulator (~30 s)
 def test_logging_changes_nothing_in_the_run(short_run, tmp_path):
     """The logger is a listener, not part of the loop: the same episode with and without it drives
     the very same trajectory (the run is deterministic)."""
@@ -145,3 +150,32 @@ def test_logging_changes_nothing_in_the_run(short_run, tmp_path):
     assert logger.close() == tmp_path / "r.rrd"
     assert np.array_equal(plain.trajectory, logged.trajectory) and plain.to_dict() == logged.to_dict()
     assert rows(read_rrd(tmp_path / "r.rrd")["/camera/image"]) == logger.steps > 0
+
+
+def test_a_viewer_that_goes_away_loses_nothing(tmp_path, caplog, monkeypatch):
+    """A spawned viewer that closes (or cannot start: no usable GPU) fails the flush of its sink:
+    the run goes on, the file holds the whole recording, and one warning says so."""
+    import logging
+
+    from map_synth import FAST, sequence, write_sequence
+
+    from topomap.build import build_map
+    from topomap.viz.rerun import RerunLogger, log_map
+
+    write_sequence(tmp_path / "imgs", sequence(6))
+    m = build_map(tmp_path / "imgs", FAST)
+    logger = RerunLogger(m, tmp_path / "r.rrd")
+
+    def severed(*a, **k):
+        raise RuntimeError("gRPC connection severed: Failed to send messages")
+
+    monkeypatch.setattr(logger.rec, "flush", severed)
+    with caplog.at_level(logging.WARNING, logger="topomap"):
+        assert logger.close() == tmp_path / "r.rrd"
+    assert "viewer stopped receiving" in caplog.text and "r.rrd holds the whole recording" in caplog.text
+    rec = read_rrd(tmp_path / "r.rrd")
+    assert len(column(rec["/map/graph"], "GraphNodes:node_ids")[0]) == len(m.nodes)
+    # the map alone, without positions: graph and one thumbnail per node
+    out = log_map(m, tmp_path / "m.rrd")
+    rec = read_rrd(out)
+    assert rows(rec["/map/keyframe"]) == len(m.nodes) and "/world/map/nodes" not in rec

@@ -301,9 +301,19 @@ class RerunLogger:
                                       ("world/estimate/trail", self._estimate, (230, 80, 200))):
             if trail:
                 self.rec.log(entity, rr.LineStrips2D([trail], radii=0.03, colors=colour))
-        self.rec.flush()
-        self.rec.disconnect()
+        _finish(self.rec, self.path)
         return self.path
+
+
+def _finish(rec, path: Path | None) -> None:
+    """Flush and close a recording. A viewer that went away (closed, or failed to start: no usable
+    GPU) fails the flush of its sink; the run and the file are not lost for that."""
+    try:
+        rec.flush()
+    except RuntimeError as e:
+        log.warning("the Rerun viewer stopped receiving (%s)%s", str(e).splitlines()[0][:120],
+                    f"; {path} holds the whole recording" if path is not None else "")
+    rec.disconnect()
 
 
 def log_map(tmap: TopoMap, path: str | Path | None = None, *, spawn: bool = False,
@@ -319,6 +329,5 @@ def log_map(tmap: TopoMap, path: str | Path | None = None, *, spawn: bool = Fals
         if positions is not None:
             rec.log("world/map/selected", rr.Points2D([_xy(*positions[n][:2])], radii=0.15, colors=(250, 160, 30),
                                                       labels=[f"node {n}: {tmap.nodes[n].source}"]))
-    rec.flush()
-    rec.disconnect()
+    _finish(rec, Path(path) if path is not None else None)
     return Path(path) if path is not None else None
