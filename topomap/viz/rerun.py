@@ -110,7 +110,7 @@ def _xy(x: float, z: float) -> list[float]:
 
 def _jpeg(image: np.ndarray) -> bytes:
     bgr = image if image.ndim == 2 else cv2.cvtColor(image[:, :, :3], cv2.COLOR_RGB2BGR)
-    ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 90])
+    ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 80])  # a third smaller than 90 (docs/visualization.md)
     return buf.tobytes()
 
 
