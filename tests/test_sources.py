@@ -30,7 +30,7 @@ CAMERA = dict(fx=410.0, fy=405.0, cx=241.5, cy=178.0, width=480, height=360, d=[
 
 
 def walk_frames() -> list[np.ndarray]:
-    """The out-and-back walk of map_synth (35 grey frames; its return leg closes a loop)."""
+    """The out-and-back walk of map_synth (34 grey frames; its return leg closes loops)."""
     tex = scene(0)
     return [window(tex, x, y=40.0) for x in out_and_back_x()]
 
