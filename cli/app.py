@@ -13,6 +13,7 @@ from typing import Any
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from typer.core import TyperGroup
 
 from topomap.errors import TopomapError
@@ -66,7 +67,7 @@ class TopomapGroup(TyperGroup):
 
 def fail(message: str, code: int = 1):
     """Print ``Error: message`` as one line on stderr and exit with ``code``."""
-    err_console.print(f"[bold red]Error:[/] {_one_line(message)}", markup=True, highlight=False)
+    err_console.print(f"[bold red]Error:[/] {escape(_one_line(message))}", markup=True, highlight=False)
     raise typer.Exit(code)
 
 
@@ -120,4 +121,4 @@ class _RichLogHandler(logging.Handler):
 
     def emit(self, record: logging.LogRecord) -> None:
         style = "yellow" if record.levelno >= logging.WARNING else "dim"
-        err_console.print(f"[{style}]{record.levelname.lower()}:[/] {_one_line(record.getMessage())}", markup=True)
+        err_console.print(f"[{style}]{record.levelname.lower()}:[/] {escape(_one_line(record.getMessage()))}", markup=True)

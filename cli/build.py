@@ -67,12 +67,13 @@ def _check_output_file(path: Path, suffixes: tuple[str, ...] | None = None) -> N
 
 @app.command()
 def build(
-    source: Path = typer.Argument(..., help="Image folder, video file, or text file listing image paths."),
+    source: Path = typer.Argument(..., help="Image folder, video file, text file listing image paths, or a ROS bag (.bag, .mcap, .db3, rosbag2 folder)."),
     output: Path = typer.Option(..., "--output", "-o", help="Map file to write (e.g. office.topomap)."),
     features: str = typer.Option(None, "--features", "-f", help=f"Local features: {', '.join(sorted(['orb', 'sift', 'akaze']))} [default: the preset's, orb]."),
     max_features: int = typer.Option(None, "--max-features", help="Keypoints kept per image."),
     resize: int = typer.Option(None, "--resize", help="Shrink images so the longest side is at most MAXPX.", metavar="MAXPX"),
-    camera: Path = typer.Option(None, "--camera", help="Intrinsics YAML/JSON (fx, fy, cx, cy[, distortion]); default: 60 deg field of view."),
+    camera: Path = typer.Option(None, "--camera", help="Intrinsics YAML/JSON (fx, fy, cx, cy[, distortion]); default: a bag's CameraInfo, else 60 deg field of view."),
+    topic: str = typer.Option(None, "--topic", help="Image topic of a ROS bag (sensor_msgs/Image or CompressedImage); omitted: the bag's only one."),
     preset: str = typer.Option("default", "--preset", help=f"Build preset: {', '.join(BUILD_PRESETS)}."),
     every: int = typer.Option(1, "--every", help="Use every N-th frame (videos and folders)."),
     append: bool = typer.Option(False, "--append", help="Add this sequence to the existing map, linked by loop closures."),
@@ -90,9 +91,11 @@ def build(
         config = dataclasses.replace(config, features=dataclasses.replace(config.features, max_features=max_features))
     if resize is not None:
         config = dataclasses.replace(config, features=dataclasses.replace(config.features, resize_max_px=resize))
-    seq = open_sequence(source, every)  # bad sources fail here, before the progress bar appears
+    seq = open_sequence(source, every, topic)  # bad sources fail here, before the progress bar appears
     check_writable(output, overwrite=force, append=append)
     cam = load_camera(camera) if camera is not None else None
+    if cam is not None and seq.camera is not None and not append:
+        err_console.print(f"[dim]--camera {camera.name} is used instead of {seq.camera.source}[/]")
     with contextlib.ExitStack() as stack:
         # --append: the map's write lock is held from reading the map to the commit, so a concurrent
         # `index` or `--append` waits (or is refused with one line) instead of being overwritten
@@ -183,25 +186,41 @@ def info(
 @app.command()
 def show(
     map_path: Path = typer.Argument(..., metavar="MAP", help="Map file."),
-    output: Path = typer.Option(..., "--output", "-o", help="PNG to write."),
+    output: Path = typer.Option(None, "--output", "-o", help="Image to write (.png, .jpg, .svg, .pdf)."),
     poses: Path = typer.Option(None, "--poses", help="Ground-truth poses CSV (image,x,z[,theta] or image,cx,cy,cz) to place nodes."),
+    rerun: Path = typer.Option(None, "--rerun", help="Write a Rerun recording (FILE.rrd): the graph and each keyframe's thumbnail (needs the viz extra)."),
+    rerun_spawn: bool = typer.Option(False, "--rerun-spawn", help="Show the map in a Rerun viewer started for it (needs a display)."),
 ) -> None:
-    """Draw the map graph with node thumbnails (loop edges dashed red)."""
+    """Draw the map graph with node thumbnails (loop edges dashed red), as an image and/or in Rerun."""
     from topomap.groundtruth import read_poses
-    from topomap.viz import plot_map
 
+    if output is None and rerun is None and not rerun_spawn:
+        fail("give an image to write with -o FILE.png, a Rerun recording with --rerun FILE.rrd, or --rerun-spawn")
+    if output is not None:
+        _check_output_file(output, SHOW_FORMATS)
+    if rerun is not None:
+        _check_output_file(rerun, ("rrd",))
     m = load_map(map_path)
     positions = read_poses(poses).positions_2d() if poses else None
     if positions is not None:
         missing = [n.source for n in m.nodes.values() if n.source not in positions]
         if missing:
             raise DatasetError(f"{poses} has no pose for keyframe(s) {', '.join(missing[:3])}; is it the right file?")
-    _check_output_file(output, SHOW_FORMATS)
-    try:
-        plot_map(m, output, positions)
-    except OSError as e:
-        fail(f"cannot write {output}: {e.strerror or e}")
-    err_console.print(f"wrote {output}")
+    if output is not None:
+        from topomap.viz import plot_map
+
+        try:
+            plot_map(m, output, positions)
+        except OSError as e:
+            fail(f"cannot write {output}: {e.strerror or e}")
+        err_console.print(f"wrote {output}")
+    if rerun is not None or rerun_spawn:
+        from topomap.viz.rerun import log_map
+
+        node_xy = {n.id: positions[n.source] for n in m.nodes.values()} if positions is not None else None
+        log_map(m, rerun, spawn=rerun_spawn, positions=node_xy)
+        if rerun is not None:
+            err_console.print(f"wrote {rerun}")
 
 
 @app.command()

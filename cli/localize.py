@@ -34,9 +34,9 @@ def _localizer(map_path: Path, features: str | None, descriptor: str, top_k: int
     return m, Localizer(m, cfg)
 
 
-def _run(loc: Localizer, query: Path, sequence: bool, quiet: bool):
+def _run(loc: Localizer, query: Path, sequence: bool, quiet: bool, topic: str | None = None):
     """Localize every readable frame of QUERY; returns ``[(name, Localization)]`` and skipped names."""
-    seq = open_sequence(query)
+    seq = open_sequence(query, topic=topic)
     if seq.kind == "image":  # one image: its reason is the error, not a warning and a summary
         frame = next(iter(seq))
         if frame.image is None:
@@ -58,13 +58,15 @@ def _run(loc: Localizer, query: Path, sequence: bool, quiet: bool):
     return out, skipped
 
 
+_TOPIC_HELP = "Image topic of a ROS bag QUERY; omitted: the bag's only one."
 _DESCRIPTOR_HELP = "Appearance signal: " + "; ".join(f"{k} = {v}" for k, v in DESCRIPTORS.items()) + "."
 
 
 @app.command()
 def localize(
     map_path: Path = typer.Argument(..., metavar="MAP", help="Map file."),
-    query: Path = typer.Argument(..., help="Query image, image folder or video."),
+    query: Path = typer.Argument(..., help="Query image, image folder, video or ROS bag."),
+    topic: str = typer.Option(None, "--topic", help=_TOPIC_HELP),
     sequence: bool = typer.Option(False, "--sequence", help="Frames arrive in order: fuse them with the temporal filter."),
     descriptor: str = typer.Option("auto", "--descriptor", help=_DESCRIPTOR_HELP),
     top_k: int = typer.Option(10, "--top-k", help="Candidates verified geometrically per query."),
@@ -75,7 +77,7 @@ def localize(
     """Find the map node each query image shows (or say it is not in the map)."""
     m, loc = _localizer(map_path, features, descriptor, top_k, min_confidence)
     t0 = time.perf_counter()
-    results, _ = _run(loc, query, sequence, as_json)
+    results, _ = _run(loc, query, sequence, as_json, topic)
     dt = (time.perf_counter() - t0) / len(results)
     frames = {n: [f.source for f in m.frames if f.node == n] for n in m.nodes}
     rows = [
@@ -99,7 +101,8 @@ def localize(
 @app.command("eval")
 def eval_(
     map_path: Path = typer.Argument(..., metavar="MAP", help="Map file."),
-    query: Path = typer.Argument(..., help="Query image folder or video."),
+    query: Path = typer.Argument(..., help="Query image folder, video or ROS bag."),
+    topic: str = typer.Option(None, "--topic", help=_TOPIC_HELP),
     ground_truth: str = typer.Option(..., "--ground-truth", help="Correspondence CSV (query_file,matching_ref_indices|files), 'same-name', or a query poses CSV (with --map-poses and --radius)."),
     map_poses: Path = typer.Option(None, "--map-poses", help="Poses CSV of the map's frames (with a poses ground truth)."),
     radius: float = typer.Option(None, "--radius", help="Distance [m] within which a map frame shows the query's place (poses ground truth)."),
@@ -118,7 +121,7 @@ def eval_(
     if plot is not None and not plot.parent.exists():
         raise DatasetError(f"folder {plot.parent} does not exist (for --plot)")
     # read the ground truth before the (slow) queries so a wrong file fails at once
-    seq_names = open_sequence(query).names or []
+    seq_names = open_sequence(query, topic=topic).names or []
     if ground_truth == "same-name":
         truth = same_name(seq_names, m, tolerance)
     else:
@@ -130,7 +133,7 @@ def eval_(
         else:
             truth = read_correspondences(gt_path, m)
     t0 = time.perf_counter()
-    results, skipped = _run(loc, query, sequence, as_json)
+    results, skipped = _run(loc, query, sequence, as_json, topic)
     seconds = (time.perf_counter() - t0) / len(results)
     res = evaluate(results, truth, m)
     data = {**res.to_dict(), "mode": "sequence" if sequence else "single", "descriptor": loc.mode,

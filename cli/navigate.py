@@ -73,7 +73,9 @@ def navigate(
     disturbance: Optional[str] = typer.Option(None, "--disturbance", help="Unknown input disturbance: none, bias, sinusoidal, slip, noisy, harsh, and/or key=value,... [default: none; demo: bias]."),
     servo: str = typer.Option("default", "--servo", help="Servo preset: default, uncompensated, aicardi, floor."),
     seed: int = typer.Option(0, "--seed", help="Seed of the disturbance's random parts."),
-    record: Optional[Path] = typer.Option(None, "--record", help="Folder for trajectory.png, camera.gif, events.jsonl, result.json."),
+    record: Optional[Path] = typer.Option(None, "--record", help="Folder for trajectory.png, camera.gif (and camera.mp4 with the viz extra), events.jsonl, result.json."),
+    rerun: Optional[Path] = typer.Option(None, "--rerun", help="Write a Rerun recording of the run (FILE.rrd): camera with matches, subgoal keyframe, estimated and true trajectory, map graph, servo estimates and commands, events (needs the viz extra)."),
+    rerun_spawn: bool = typer.Option(False, "--rerun-spawn", help="Stream the run to a Rerun viewer started for it (needs a display and the viz extra)."),
     out: Path = typer.Option(Path("topomap-demo"), "--out", help="Demo output folder (no MAP)."),
     as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
 ) -> None:
@@ -89,7 +91,7 @@ def navigate(
     if map_path is None:
         if any(v is not None for v in (goal, start_node, start_pose, world, poses, record)):
             fail("--goal, --start-*, --world, --poses and --record need a MAP (without MAP the demo chooses them)")
-        _demo(out, vehicle, disturbance, seed, as_json)
+        _demo(out, vehicle, disturbance, seed, as_json, rerun, rerun_spawn)
         return
     if goal is None:
         fail("give the goal node with --goal N (see `topomap info MAP` for the node ids)")
@@ -101,7 +103,8 @@ def navigate(
     from topomap.sim.world import resolve_world
     from topomap.store import load_map
 
-    m = load_map(map_path)
+    _check_rerun(rerun)
+    m = load_map(map_path, images=record is not None or rerun is not None or rerun_spawn)  # keyframes for the drawings
     m.node(goal)
     if start_node is not None:
         from topomap.plan import Planner
@@ -127,27 +130,64 @@ def navigate(
     if pose is not None and not w.is_free(pose[0], pose[1]):
         fail(f"--start-pose {start_pose} is not on the world's free floor")
     rec = EpisodeRecorder(m) if record is not None else None
+    viewer = _rerun_logger(m, w, pose_table, rerun, rerun_spawn)
     show = _printer(as_json)
 
     def listen(ev) -> None:
         show(ev)
         if rec is not None:
             rec(ev)
+        if viewer is not None:
+            viewer(ev)
 
     result = run_episode(m, w, goal, pose_table, start_pose=pose, start_node=start_node, vehicle=vehicle,
-                         disturbance=disturbance or "none", seed=seed, servo_config=servo_cfg, on_event=listen)
+                         disturbance=disturbance or "none", seed=seed, servo_config=servo_cfg, on_event=listen,
+                         on_truth=viewer.log_truth if viewer is not None else None)
     data = _shown(result)
     files = rec.write_all(record, w, pose_table, result, data=data) if rec is not None else {}
+    if viewer is not None and viewer.close() is not None:
+        files["rerun"] = rerun
     _report(data, as_json, files)
 
 
-def _demo(out: Path, vehicle: str, disturbance: str | None, seed: int, as_json: bool) -> None:
+def _check_rerun(path: Path | None) -> None:
+    """One-line errors for a --rerun file that cannot be written, before the robot moves."""
+    if path is None:
+        return
+    if path.is_dir():
+        fail(f"--rerun {path} is a folder; give a file name ending in .rrd")
+    if path.suffix.lower() != ".rrd":
+        fail(f"--rerun {path.name}: a Rerun recording's file name ends in .rrd")
+    if not path.parent.exists():
+        fail(f"folder {path.parent} does not exist (for --rerun)")
+
+
+def _rerun_logger(m, world, poses, path: Path | None, spawn: bool):
+    """The run's Rerun logger (keyframe poses from the teach run, for the floor plan), or None."""
+    if path is None and not spawn:
+        return None
+    from topomap.viz.rerun import RerunLogger
+
+    node_poses = {n: poses[node.source] for n, node in m.nodes.items() if node.source in poses}
+    viewer = RerunLogger(m, path, spawn=spawn, node_poses=node_poses)
+    viewer.log_world(world)
+    return viewer
+
+
+def _demo(out: Path, vehicle: str, disturbance: str | None, seed: int, as_json: bool,
+          rerun: Path | None = None, rerun_spawn: bool = False) -> None:
     from topomap.sim.demo import DEMO_DISTURBANCE, run_demo
 
     if out.exists() and not out.is_dir():
         fail(f"--out {out} exists and is not a folder")
+    _check_rerun(rerun)
+    if rerun is not None or rerun_spawn:
+        from topomap.viz.rerun import check_rerun
+
+        check_rerun(rerun_spawn)  # a missing extra or viewer fails now, not after teaching and building
     show = _printer(as_json)
     demo = run_demo(out, vehicle=vehicle, disturbance=disturbance or DEMO_DISTURBANCE, seed=seed,
-                    on_stage=(None if as_json else lambda s: err_console.print(f"[bold]{s}[/]")), on_event=show)
+                    on_stage=(None if as_json else lambda s: err_console.print(f"[bold]{s}[/]")), on_event=show,
+                    rerun=rerun, rerun_spawn=rerun_spawn)
     data = _shown(demo.result)
     _report(data, as_json, {k: str(v) for k, v in demo.files.items()})

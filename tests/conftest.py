@@ -60,3 +60,31 @@ def tamper(path, *statements: str) -> None:
         con.execute(sql)
     con.commit()
     con.close()
+
+
+@pytest.fixture(scope="session")
+def short_run(tmp_path_factory):
+    """A short navigation recorded every way (issue 18): the default world's route room3 taught,
+    built into a map, then `topomap navigate MAP --goal 4 --start-node 0 --record rec/ --rerun
+    run.rrd --json`. Returns a dict of paths (root, teach, map, record, rrd) and the parsed result;
+    ``rrd`` is None when the viz extra (rerun-sdk) is not installed."""
+    import importlib.util
+    import json
+
+    from typer.testing import CliRunner
+
+    from topomap.sim.teach import teach
+    from topomap.sim.world import default_world
+    from topomap_cli.main import app
+
+    root = tmp_path_factory.mktemp("shortrun")
+    run = teach(default_world(), "room3", root / "teach")
+    runner = CliRunner()
+    res = runner.invoke(app, ["build", str(root / "teach"), "--camera", str(run.camera_path), "-o", str(root / "m.topomap"), "--json"])
+    assert res.exit_code == 0, res.output
+    rrd = root / "run.rrd" if importlib.util.find_spec("rerun") else None
+    args = ["navigate", str(root / "m.topomap"), "--goal", "4", "--start-node", "0", "--record", str(root / "rec"), "--json"]
+    res = runner.invoke(app, args + (["--rerun", str(rrd)] if rrd else []))
+    assert res.exit_code == 0, res.output
+    return {"root": root, "teach": root / "teach", "map": root / "m.topomap", "record": root / "rec", "rrd": rrd,
+            "result": json.loads(res.stdout)}

@@ -97,9 +97,10 @@ def build_map(
 ) -> TopoMap:
     """Build a map from an image sequence, or extend ``base`` with a new sequence (``--append``).
 
-    ``source``: image folder, video, list file or an :class:`ImageSequence`; ``config``: defaults
-    to :class:`BuildConfig` (for ``base`` the map's own config is used); ``camera``: intrinsics of
-    the *input* images (default: :meth:`CameraIntrinsics.default`). Unreadable frames are skipped,
+    ``source``: image folder, video, list file, ROS bag or an :class:`ImageSequence`; ``config``:
+    defaults to :class:`BuildConfig` (for ``base`` the map's own config is used); ``camera``:
+    intrinsics of the *input* images (default: the source's own, e.g. a bag's CameraInfo, else
+    :meth:`CameraIntrinsics.default`). Unreadable frames are skipped,
     logged and recorded. Returns the map; ``map.sequences[-1]`` summarises this run.
     """
     t0 = time.perf_counter()
@@ -112,6 +113,8 @@ def build_map(
         config = base.config
         if camera is not None:
             log.warning("--camera ignored when appending: the map's own intrinsics are used")
+    elif camera is None:
+        camera = seq.camera  # the source's own intrinsics (a bag's CameraInfo), if any
     config = config or BuildConfig()
     detector(config.features.kind)  # fail early on an unknown feature type
     tmap = base if base is not None else TopoMap(camera=CameraIntrinsics(1.0, 1.0, 0.0, 0.0), config=config)

@@ -20,6 +20,7 @@ __all__ = [
     "NodeNotFoundError",
     "NoRouteError",
     "IndexMissingError",
+    "MissingExtraError",
     "unknown_choice",
 ]
 
@@ -57,6 +58,10 @@ class NoRouteError(TopomapError):
 
 class IndexMissingError(TopomapError):
     """The map has no place-recognition index (built by an older topomap or with --no-index)."""
+
+
+class MissingExtraError(TopomapError):
+    """A feature needs an optional extra that is not installed (``pip install 'appearance-topomap[bags]'``...)."""
 
 
 def unknown_choice(what: str, value: object, choices: Iterable[str]) -> ConfigError:

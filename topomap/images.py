@@ -11,8 +11,9 @@ declare 30000 x 30000 pixels), refuses a cut-short file before decoding it, and 
 own warnings off stderr. Files are opened only when they are regular files (a FIFO or a device
 would block or never end) and only up to :data:`MAX_IMAGE_BYTES`.
 
-A *source* for :func:`open_sequence` is an image folder, a video file, or a text file listing one
-image path per line (relative paths are relative to the list file).
+A *source* for :func:`open_sequence` is an image folder, a video file, a text file listing one
+image path per line (relative paths are relative to the list file), or one of the sources
+registered in :mod:`topomap.sources` (ROS 1 / ROS 2 bags, MCAP).
 """
 
 from __future__ import annotations
@@ -32,11 +33,15 @@ import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from topomap.errors import DatasetError
+
+if TYPE_CHECKING:
+    from topomap.camera import CameraIntrinsics
 
 __all__ = [
     "IMAGE_EXTENSIONS",
@@ -507,6 +512,9 @@ class ImageSequence:
     objects, unreadable frames included with their ``error`` so callers can count and report them.
     """
 
+    #: intrinsics the source itself carries (a bag's CameraInfo), else None
+    camera: CameraIntrinsics | None = None
+
     def __init__(self, source: str | Path, every: int = 1):
         self.source = Path(source)
         if every < 1:
@@ -601,6 +609,14 @@ class ImageSequence:
             cap.release()
 
 
-def open_sequence(source: str | Path, every: int = 1) -> ImageSequence:
-    """An :class:`ImageSequence` over a folder, a video, a list file or a single image."""
+def open_sequence(source: str | Path, every: int = 1, topic: str | None = None) -> ImageSequence:
+    """An :class:`ImageSequence` over a folder, a video, a list file, a single image or a ROS bag
+    (``topic``: its image topic, see :mod:`topomap.sources`)."""
+    from topomap.sources import open_source  # the registered sources (bags: rosbags loads lazily)
+
+    seq = open_source(source, every, topic)
+    if seq is not None:
+        return seq
+    if topic is not None:
+        raise DatasetError(f"--topic is for ROS bags; {Path(source).name} is not a bag (.bag, .mcap, .db3 or a rosbag2 folder)")
     return ImageSequence(source, every)

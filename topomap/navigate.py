@@ -98,7 +98,9 @@ class EventKind(str, enum.Enum):
 class NavEvent:
     """Something the navigator did. ``time_s``: robot time since the start [s]; ``subgoal``: the node
     being servoed to; ``route``: the current plan; ``servo``: the control step (STEP events);
-    ``image``: the camera image of that step (not copied — do not modify)."""
+    ``image``: the camera image of that step (not copied — do not modify); ``matches``: the pixels
+    the step servoed on, ``(current (N, 2), subgoal keyframe (N, 2))`` float32 at the map's working
+    resolution, row i matching row i (``servo.pose.inlier_mask`` marks those its pose kept)."""
 
     kind: EventKind
     time_s: float
@@ -109,6 +111,7 @@ class NavEvent:
     localization: Localization | None = None
     command: Command | None = None
     image: np.ndarray | None = field(default=None, repr=False)
+    matches: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
 
 
 @dataclass
@@ -290,11 +293,11 @@ class Navigator:
             image, q = self._look()
             v = self._match(q, sub)
             use = v.inlier_matches if v.inliers >= self.map.config.match.min_inliers else v.matches
-            goal_kp = self.map.nodes[sub].features.keypoints
-            s = self.servo.step(q.features.keypoints[use.ia], goal_kp[use.ib], self.camera,
-                                cfg.control_period_s, self._last_command, goal_camera=self.map.camera)
+            cur_px, goal_px = q.features.keypoints[use.ia], self.map.nodes[sub].features.keypoints[use.ib]
+            s = self.servo.step(cur_px, goal_px, self.camera, cfg.control_period_s, self._last_command,
+                                goal_camera=self.map.camera)
             yield NavEvent(EventKind.STEP, self._time, s.status.value, subgoal=sub, route=tuple(nodes), servo=s,
-                           command=s.command, image=image)
+                           command=s.command, image=image, matches=(cur_px, goal_px))
             self._estimate = s.disturbance
             out.final_estimate_m = s.position_error_m
             out.final_heading_estimate_deg = math.degrees(s.heading_error_rad) if math.isfinite(s.heading_error_rad) else math.nan

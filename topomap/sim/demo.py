@@ -2,7 +2,8 @@
 
 :func:`run_demo` is what ``topomap navigate`` does without arguments: generate the default world,
 teach its loop, build the map, start near the first node and navigate to the node farthest along
-the route, then write ``trajectory.png``, ``camera.gif``, the map and ``result.json``.
+the route, then write ``trajectory.png``, ``camera.gif`` (and ``camera.mp4``), the map and
+``result.json``.
 
 :class:`EpisodeRecorder` collects what an episode shows (camera images, events) for the plots and
 the animation; it listens to the navigator's events and never feeds anything back.
@@ -17,7 +18,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from topomap.graph import TopoMap
@@ -25,61 +25,39 @@ from topomap.groundtruth import PoseTable, read_poses
 from topomap.navigate import EventKind, NavEvent
 from topomap.sim.episode import EpisodeResult, goal_pose, run_episode
 from topomap.sim.world import World
+from topomap.viz.animation import CameraAnimation
 
 __all__ = ["EpisodeRecorder", "DemoResult", "run_demo", "farthest_node", "plot_episode", "DEMO_DISTURBANCE"]
 
 log = logging.getLogger(__name__)
 
-#: The demo's unknown input disturbance: constant biases on every channel (THESIS.md section 1).
+#: The demo's unknown input disturbance: constant biases on every channel (docs/theory.md §1.2).
 DEMO_DISTURBANCE = "bias"
 
 
 @dataclass
 class EpisodeRecorder:
-    """Keeps every ``every``-th camera image (with the subgoal's thumbnail beside it) and all
-    non-step events of a navigation, for :meth:`write_animation` and ``events.jsonl``."""
+    """Records a navigation for its files: the camera animation (every ``every``-th control step,
+    :class:`~topomap.viz.animation.CameraAnimation`) and all non-step events."""
 
     tmap: TopoMap
-    every: int = 4
-    max_frames: int = 400
-    frames: list[np.ndarray] = field(default_factory=list)
+    every: int = 2
+    max_shots: int = 9000
     events: list[dict] = field(default_factory=list)
-    _steps: int = 0
+    animation: CameraAnimation = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.animation = CameraAnimation(self.tmap, self.every, self.max_shots)
 
     def __call__(self, ev: NavEvent) -> None:
         if ev.kind is not EventKind.STEP:
             self.events.append({"time_s": round(ev.time_s, 2), "kind": ev.kind.value, "message": ev.message,
                                 "subgoal": ev.subgoal})
-            return
-        self._steps += 1
-        if ev.image is not None and self._steps % self.every == 0 and len(self.frames) < self.max_frames:
-            self.frames.append(self._panel(ev))
+        self.animation(ev)
 
-    def _panel(self, ev: NavEvent) -> np.ndarray:
-        cam = ev.image if ev.image.ndim == 3 else cv2.cvtColor(ev.image, cv2.COLOR_GRAY2RGB)
-        h, w = cam.shape[:2]
-        thumb = self.tmap.nodes[ev.subgoal].thumbnail
-        thumb = cv2.resize(thumb, (w // 2, int(round(thumb.shape[0] * (w / 2) / thumb.shape[1]))))
-        side = np.full((h, w // 2, 3), 30, np.uint8)
-        side[: min(h, thumb.shape[0]), :, :] = cv2.cvtColor(thumb[: h], cv2.COLOR_GRAY2RGB)
-        panel = np.hstack([cam, side])
-        s = ev.servo
-        lines = [f"t {ev.time_s:5.1f} s  subgoal {ev.subgoal}", s.status.value if s else ""]
-        if s is not None and math.isfinite(s.position_error_m):
-            lines.append(f"est {s.position_error_m:.2f} m {math.degrees(s.heading_error_rad):+.1f} deg")
-        for i, text in enumerate(lines):
-            cv2.putText(panel, text, (w + 4, h - 40 + 14 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (255, 255, 0), 1, cv2.LINE_AA)
-        return panel
-
-    def write_animation(self, path: str | Path, fps: float = 8.0) -> Path | None:
-        """An animated GIF of the recorded camera panels (``None`` when nothing was recorded)."""
-        import imageio.v2 as imageio
-
-        if not self.frames:
-            return None
-        path = Path(path)
-        imageio.mimsave(path, [f[::2, ::2] for f in self.frames], duration=1.0 / fps, loop=0)
-        return path
+    def write_animation(self, path: str | Path) -> Path | None:
+        """The animated GIF (``None`` when nothing was recorded)."""
+        return self.animation.write_gif(path)
 
     def write_events(self, path: str | Path) -> Path:
         path = Path(path)
@@ -88,13 +66,17 @@ class EpisodeRecorder:
 
     def write_all(self, folder: str | Path, world: World, poses: PoseTable, result: EpisodeResult, *,
                   title: str | None = None, data: dict | None = None) -> dict[str, Path]:
-        """``trajectory.png``, ``camera.gif`` (when frames were kept), ``events.jsonl`` and
-        ``result.json`` (``data``, default the whole result) in ``folder``; returns name -> path."""
+        """``trajectory.png``, ``camera.gif`` and ``camera.mp4`` (when frames were kept; the MP4 when
+        imageio's ffmpeg plugin is installed), ``events.jsonl`` and ``result.json`` (``data``,
+        default the whole result) in ``folder``; returns name -> path."""
         folder = Path(folder)
         files = {"trajectory": plot_episode(world, self.tmap, poses, result, folder / "trajectory.png", title=title)}
         anim = self.write_animation(folder / "camera.gif")
         if anim is not None:
             files["animation"] = anim
+        video = self.animation.write_mp4(folder / "camera.mp4")
+        if video is not None:
+            files["video"] = video
         files["events"] = self.write_events(folder / "events.jsonl")
         files["result"] = folder / "result.json"
         files["result"].write_text(json.dumps(result.to_dict() if data is None else data, indent=2) + "\n")
@@ -148,9 +130,13 @@ def run_demo(
     goal: int | None = None,
     on_stage: Callable[[str], None] | None = None,
     on_event: Callable[[NavEvent], None] | None = None,
+    rerun: str | Path | None = None,
+    rerun_spawn: bool = False,
 ) -> DemoResult:
     """Default world -> teach run of its loop -> map -> navigate from near node 0 to ``goal``
-    (default: the farthest node) -> ``trajectory.png``, ``camera.gif``, ``map.topomap``, ``result.json``."""
+    (default: the farthest node) -> ``trajectory.png``, ``camera.gif`` (``camera.mp4`` with the viz
+    extra), ``map.topomap``, ``result.json``; ``rerun``: also a Rerun recording of the run (an
+    ``.rrd`` file), ``rerun_spawn``: streamed to a viewer (:class:`~topomap.viz.rerun.RerunLogger`)."""
     from topomap.build import build_map
     from topomap.camera import load_camera
     from topomap.sim.teach import teach
@@ -179,15 +165,26 @@ def run_demo(
     start = (x - 0.15 * math.sin(th), z + 0.15 * math.cos(th), th + math.radians(10))
     stage(f"navigating from near node {start_node} to node {goal} ({vehicle}, disturbance {disturbance})")
     rec = EpisodeRecorder(tmap)
+    viewer = None
+    if rerun is not None or rerun_spawn:
+        from topomap.viz.rerun import RerunLogger
+
+        viewer = RerunLogger(tmap, rerun, spawn=rerun_spawn, node_poses={n: goal_pose(tmap, poses, n) for n in tmap.nodes},
+                             name="demo")
+        viewer.log_world(world)
 
     def listen(ev: NavEvent) -> None:
         rec(ev)
+        if viewer is not None:
+            viewer(ev)
         if on_event is not None:
             on_event(ev)
 
     result = run_episode(tmap, world, goal, poses, start_pose=start, vehicle=vehicle, disturbance=disturbance,
-                         seed=seed, on_event=listen)
+                         seed=seed, on_event=listen, on_truth=viewer.log_truth if viewer is not None else None)
     title = (f"node {start_node} -> {goal}: {result.status}, "
              f"{result.final_position_error_m:.3f} m / {result.final_heading_error_deg:.1f} deg")
     files = {"map": map_path, **rec.write_all(out, world, poses, result, title=title)}
+    if viewer is not None and viewer.close() is not None:
+        files["rerun"] = Path(rerun)
     return DemoResult(out, map_path, result, files)

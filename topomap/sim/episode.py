@@ -105,9 +105,13 @@ def run_episode(
     localize_config: LocalizeConfig | None = None,
     localizer: Localizer | None = None,
     on_event: Callable[[NavEvent], None] | None = None,
+    on_truth: Callable[[float, np.ndarray], None] | None = None,
 ) -> EpisodeResult:
     """Put a simulated robot at ``start_pose`` (default: the keyframe pose of ``start_node``, or of
-    node 0), let the navigator drive it to ``goal`` from images alone, and score the end."""
+    node 0), let the navigator drive it to ``goal`` from images alone, and score the end.
+
+    ``on_event`` hears the navigator's events; ``on_truth(time_s, pose)`` the simulator's true pose
+    ``(x, z, theta)`` where each control step's image was taken (for recordings and scoring only)."""
     target = goal_pose(tmap, poses, goal)
     if start_pose is None:
         start_pose = tuple(goal_pose(tmap, poses, start_node if start_node is not None else min(tmap.nodes)))
@@ -120,6 +124,8 @@ def run_episode(
                 first_route = ev.route
             if on_event is not None:
                 on_event(ev)
+            if on_truth is not None and ev.kind is EventKind.STEP:
+                on_truth(ev.time_s, np.array(sim.ground_truth.pose(), float))  # the robot has not moved since the image
         out = nav.outcome
         err, herr, traj, length = _score(sim, target)
         collisions = sim.ground_truth.collisions

@@ -1,4 +1,4 @@
-"""topomap.viz: the map drawing (graph with thumbnails; ground-truth layout when given)."""
+"""topomap.viz.plots: the map drawing (graph with thumbnails; ground-truth layout when given)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ from map_synth import FAST, out_and_back_x, write_out_and_back
 from topomap.build import build_map
 from topomap.camera import CameraIntrinsics
 from topomap.graph import EdgeKind, TopoMap
-from topomap.viz import EDGE_STYLE, _layout, plot_map
+from topomap.viz import EDGE_STYLE, plot_map
+from topomap.viz.plots import _layout
 
 
 @pytest.fixture(scope="module")
