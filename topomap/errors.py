@@ -19,6 +19,7 @@ __all__ = [
     "NodeNotFoundError",
     "NoRouteError",
     "IndexMissingError",
+    "ClusterError",
     "unknown_choice",
 ]
 
@@ -52,6 +53,11 @@ class NoRouteError(TopomapError):
 
 class IndexMissingError(TopomapError):
     """The map has no place-recognition index (built by an older topomap or with --no-index)."""
+
+
+class ClusterError(TopomapError):
+    """The workers of a build cannot be reached or cannot do their part (Dask scheduler down, a
+    worker that cannot read the images)."""
 
 
 def unknown_choice(what: str, value: object, choices: Iterable[str]) -> ConfigError:

@@ -8,7 +8,7 @@ back. The rollback journal is used rather than WAL because a read-only WAL reade
 readers wait for a commit through SQLite's busy timeout.
 
 Arrays are stored as raw little-endian bytes with their dtype and shape in columns and read back
-with ``np.frombuffer``; images are PNG. A file is recognised by SQLite's ``application_id``
+with ``np.frombuffer``; images are JPEG or PNG (``BuildConfig.image_format``; both decode). A file is recognised by SQLite's ``application_id``
 header field and ``meta.format``; ``PRAGMA user_version`` and ``meta.schema_version`` carry the
 schema version. Newer files are refused with an "upgrade topomap" message.
 """
@@ -34,7 +34,7 @@ from topomap.errors import ConfigError, DatasetError, MapFormatError, TopomapErr
 from topomap.features import Features, detector
 from topomap.graph import Edge, EdgeKind, FrameRecord, Node, TopoMap
 
-__all__ = ["SCHEMA_VERSION", "FORMAT_NAME", "save_map", "load_map", "update_map", "load_node_image", "check_writable", "export_json", "export_graphml"]
+__all__ = ["SCHEMA_VERSION", "FORMAT_NAME", "save_map", "load_map", "update_map", "load_node_image", "encode_image", "decode_image", "check_writable", "export_json", "export_graphml"]
 
 log = logging.getLogger(__name__)
 
@@ -57,8 +57,8 @@ CREATE TABLE node (
     source      TEXT NOT NULL,     -- file name of the keyframe image
     width       INTEGER NOT NULL,  -- working resolution the keypoints refer to [px]
     height      INTEGER NOT NULL,
-    thumbnail   BLOB NOT NULL,     -- PNG, longest side build_config.thumbnail_px
-    image       BLOB,              -- PNG keyframe at the working resolution (NULL: not stored)
+    thumbnail   BLOB NOT NULL,     -- PNG or JPEG, longest side build_config.thumbnail_px
+    image       BLOB,              -- PNG or JPEG keyframe at the working resolution (NULL: not stored)
     descriptor  BLOB,              -- whole-image descriptor, raw array (see descriptor_dtype/shape)
     descriptor_dtype TEXT,
     descriptor_shape TEXT,
@@ -127,20 +127,35 @@ def _unpack(data: bytes | None, dtype: str, shape: str, what: str) -> np.ndarray
         raise MapFormatError(f"map is damaged: {what} does not decode ({e})") from None
 
 
-def _png(img: np.ndarray) -> bytes:
-    ok, buf = cv2.imencode(".png", img)
+def encode_image(img: np.ndarray, fmt: str = "png", quality: int = 90) -> bytes:
+    """A ``(H, W) uint8`` image as the bytes the map stores: ``png`` or ``jpeg`` (``quality`` 1..100)."""
+    if fmt == "jpeg":
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    else:
+        ok, buf = cv2.imencode(".png", img)
     if not ok:  # pragma: no cover - OpenCV encodes any uint8 array
-        raise TopomapError("could not encode an image as PNG")
+        raise TopomapError(f"could not encode an image as {fmt.upper()}")
     return buf.tobytes()
 
 
-def _unpng(data: bytes | None, what: str) -> np.ndarray | None:
+def decode_image(data: bytes | None, what: str) -> np.ndarray | None:
+    """Stored image bytes (PNG or JPEG: maps written before JPEG hold PNG) -> ``(H, W) uint8``."""
     if data is None:
         return None
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
     if img is None:
-        raise MapFormatError(f"map is damaged: {what} is not a valid PNG")
+        raise MapFormatError(f"map is damaged: {what} is not a valid PNG or JPEG image")
     return img
+
+
+def _node_images(n: Node, cfg: BuildConfig) -> tuple[bytes, bytes | None]:
+    """The thumbnail and keyframe image bytes of a node in the map's format (the keyframe image as
+    the build encoded it, if it did)."""
+    thumb = encode_image(n.thumbnail, cfg.image_format, cfg.thumbnail_quality)
+    image = n.image_data
+    if image is None and n.image is not None:
+        image = encode_image(n.image, cfg.image_format, cfg.image_quality)
+    return thumb, image
 
 
 # ---------------------------------------------------------------------- checks
@@ -221,8 +236,9 @@ def _meta_rows(m: TopoMap) -> dict[str, object]:
     }
 
 
-def _insert_nodes(con: sqlite3.Connection, nodes: Iterable[Node]) -> None:
+def _insert_nodes(con: sqlite3.Connection, nodes: Iterable[Node], cfg: BuildConfig) -> None:
     for n in nodes:
+        thumb, image = _node_images(n, cfg)
         if n.descriptor is not None:
             d_blob, d_dt, d_shape = _pack(n.descriptor)
         else:
@@ -231,7 +247,7 @@ def _insert_nodes(con: sqlite3.Connection, nodes: Iterable[Node]) -> None:
             "INSERT INTO node VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
             (
                 n.id, n.sequence, n.frame_id, n.source, n.features.image_size[0], n.features.image_size[1],
-                _png(n.thumbnail), _png(n.image) if n.image is not None else None,
+                thumb, image,
                 d_blob, d_dt, d_shape, json.dumps(list(n.pose_gt)) if n.pose_gt is not None else None,
             ),
         )
@@ -275,7 +291,7 @@ def save_map(m: TopoMap, path: str | Path, *, overwrite: bool = False) -> Path:
         with closing(sqlite3.connect(tmp)) as con:
             con.executescript(SCHEMA)
             with con:  # one transaction
-                _insert_nodes(con, sorted(m.nodes.values(), key=lambda n: n.id))
+                _insert_nodes(con, sorted(m.nodes.values(), key=lambda n: n.id), m.config)
                 _upsert_edges(con, sorted(m.edges.values(), key=lambda e: e.key))
                 _insert_frames(con, m.frames)
                 _write_meta_and_index(con, m)
@@ -298,7 +314,7 @@ def update_map(m: TopoMap, path: str | Path, *, first_new_node: int, first_new_f
     con = sqlite3.connect(path, timeout=30)
     try:
         con.execute("BEGIN IMMEDIATE")
-        _insert_nodes(con, [n for i, n in sorted(m.nodes.items()) if i >= first_new_node])
+        _insert_nodes(con, [n for i, n in sorted(m.nodes.items()) if i >= first_new_node], m.config)
         _insert_frames(con, [f for f in m.frames if f.id >= first_new_frame])
         _upsert_edges(con, sorted(m.edges.values(), key=lambda e: e.key))
         _write_meta_and_index(con, m)
@@ -363,8 +379,8 @@ def _read(con: sqlite3.Connection, path: Path, images: bool) -> TopoMap:
         node = Node(
             id=nid, sequence=seq, frame_id=frame_id, source=source,
             features=Features(kp, de, fkind, (w, h)),
-            thumbnail=_unpng(thumb, f"thumbnail of node {nid}"),
-            image=_unpng(row[11], f"image of node {nid}") if images else None,
+            thumbnail=decode_image(thumb, f"thumbnail of node {nid}"),
+            image=decode_image(row[11], f"image of node {nid}") if images else None,
             descriptor=_unpack(d_blob, d_dt, d_shape, f"descriptor of node {nid}") if d_blob is not None else None,
             pose_gt=tuple(json.loads(pose)) if pose else None,
         )
@@ -401,7 +417,7 @@ def load_node_image(path: str | Path, node_id: int) -> np.ndarray | None:
         from topomap.errors import NodeNotFoundError
 
         raise NodeNotFoundError(f"node {node_id} is not in map {path.name}")
-    return _unpng(row[0], f"image of node {node_id}")
+    return decode_image(row[0], f"image of node {node_id}")
 
 
 # ---------------------------------------------------------------------- export
