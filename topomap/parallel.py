@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import os
+import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor
@@ -123,9 +124,10 @@ class InlineExecutor(Executor):
 
 
 class ProcessExecutor(Executor):
-    """A pool of ``workers`` local processes (``concurrent.futures``). Started with ``fork`` where
-    the OS offers it (Linux: a worker is ready in milliseconds, without re-importing OpenCV),
-    else ``spawn``."""
+    """A pool of ``workers`` local processes (``concurrent.futures``), started at once. On Linux,
+    from a process with no other thread, they are forked (ready in milliseconds, OpenCV already
+    imported); otherwise (threads could hold locks a forked child inherits, or no fork) from a
+    fork server that imports topomap once."""
 
     kind = "processes"
 
@@ -133,8 +135,18 @@ class ProcessExecutor(Executor):
         if workers < 1:
             raise ConfigError(f"--workers must be at least 1, got {workers}")
         self.workers = int(workers)
-        method = "fork" if "fork" in mp.get_all_start_methods() and os.name == "posix" and _is_linux() else "spawn"
-        self._pool = ProcessPoolExecutor(self.workers, mp_context=mp.get_context(method), initializer=_init_worker)
+        methods = mp.get_all_start_methods()
+        if "fork" in methods and _is_linux() and threading.active_count() == 1:
+            ctx = mp.get_context("fork")
+        elif "forkserver" in methods:
+            ctx = mp.get_context("forkserver")
+            ctx.set_forkserver_preload(["topomap.build"])
+        else:
+            ctx = mp.get_context("spawn")
+        self.start_method = ctx.get_start_method()
+        self._pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_init_worker)
+        # with fork, the first submit forks every worker before the pool's own threads start
+        self._pool.submit(_init_worker).result()
 
     def submit(self, fn: Callable, *args) -> _Future:
         return self._pool.submit(fn, *args)
@@ -168,12 +180,16 @@ class DaskExecutor(Executor):
                 n = int(workers or available_cores())
                 if n < 1:
                     raise ConfigError(f"--workers must be at least 1, got {n}")
-                self._cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes, host="127.0.0.1",
-                                             dashboard_address=None, silence_logs=logging.ERROR)
+                where = {"host": "127.0.0.1"} if processes else {}  # this machine only; threads talk in-process
+                self._cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes, dashboard_address=":0",
+                                             silence_logs=logging.ERROR, **where)
                 self._client = Client(self._cluster, set_as_default=False)
             else:
+                _probe(address)
                 self._client = Client(address, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
-        except (OSError, TimeoutError, ValueError) as e:
+        except ConfigError:
+            raise
+        except Exception as e:  # a foreign service answering the port fails in many ways; none is a bug here
             self.close()
             where = f"the Dask scheduler at {address}" if address else "a local Dask cluster"
             detail = " ".join(str(e).split()) or type(e).__name__
@@ -201,6 +217,19 @@ class DaskExecutor(Executor):
             client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _probe(address: str) -> None:
+    """Fail fast (``OSError``) when nothing listens at a ``tcp://HOST:PORT`` address: Dask's own
+    client retries until its timeout and leaves a closing client behind that blocks the exit."""
+    import socket
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(address)
+    if parts.scheme not in ("tcp", "tls") or not parts.hostname or parts.port is None:
+        raise ValueError(f"{address} is not a tcp://HOST:PORT address")
+    with socket.create_connection((parts.hostname, parts.port), timeout=CONNECT_TIMEOUT_S):
+        pass
 
 
 def make_executor(workers: int | None = None, *, dask: str | None = None, scheduler: str | None = None) -> Executor:
