@@ -22,7 +22,6 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import os
-import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor
@@ -124,10 +123,11 @@ class InlineExecutor(Executor):
 
 
 class ProcessExecutor(Executor):
-    """A pool of ``workers`` local processes (``concurrent.futures``), started at once. On Linux,
-    from a process with no other thread, they are forked (ready in milliseconds, OpenCV already
-    imported); otherwise (threads could hold locks a forked child inherits, or no fork) from a
-    fork server that imports topomap once."""
+    """A pool of ``workers`` local processes (``concurrent.futures``), started at once: forked when
+    this process runs a single thread (Linux; a worker is ready in milliseconds), else from a fork
+    server that imports topomap once (a few seconds, once per process). Never forked from a process
+    with threads: OpenCV's thread pool (native threads, invisible to ``threading``) does not survive
+    a fork, and a forked worker that calls OpenCV afterwards waits forever."""
 
     kind = "processes"
 
@@ -136,7 +136,7 @@ class ProcessExecutor(Executor):
             raise ConfigError(f"--workers must be at least 1, got {workers}")
         self.workers = int(workers)
         methods = mp.get_all_start_methods()
-        if "fork" in methods and _is_linux() and threading.active_count() == 1:
+        if "fork" in methods and _single_threaded():
             ctx = mp.get_context("fork")
         elif "forkserver" in methods:
             ctx = mp.get_context("forkserver")
@@ -145,8 +145,7 @@ class ProcessExecutor(Executor):
             ctx = mp.get_context("spawn")
         self.start_method = ctx.get_start_method()
         self._pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_init_worker)
-        # with fork, the first submit forks every worker before the pool's own threads start
-        self._pool.submit(_init_worker).result()
+        self._pool.submit(_init_worker).result()  # start-up costs land here, not in the first task
 
     def submit(self, fn: Callable, *args) -> _Future:
         return self._pool.submit(fn, *args)
@@ -155,10 +154,12 @@ class ProcessExecutor(Executor):
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _is_linux() -> bool:
-    import sys
-
-    return sys.platform.startswith("linux")
+def _single_threaded() -> bool:
+    """This process runs exactly one thread, native ones included (Linux ``/proc``; elsewhere: unknown, False)."""
+    try:
+        return len(os.listdir("/proc/self/task")) == 1
+    except OSError:
+        return False
 
 
 class DaskExecutor(Executor):

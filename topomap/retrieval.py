@@ -54,32 +54,6 @@ def _kmeans(x: np.ndarray, k: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     return centres.astype(np.float32), labels.ravel().astype(np.int64)
 
 
-def _nearest(x: np.ndarray, centres: np.ndarray, candidates: np.ndarray | None, block: int = 16384) -> np.ndarray:
-    """(N,) index of the nearest (Hamming) of ``centres`` for each row of ``x``, among all centres or
-    among the row's ``candidates`` (N, k); in blocks of rows to bound the (rows, k, B) temporaries."""
-    out = np.empty(len(x), np.int64)
-    for s in range(0, len(x), block):
-        xs = x[s : s + block]
-        if candidates is None:
-            out[s : s + block] = _hamming(xs, centres[None, :, :]).argmin(axis=1)
-        else:
-            cand = candidates[s : s + block]
-            out[s : s + block] = cand[np.arange(len(xs)), _hamming(xs, centres[cand]).argmin(axis=1)]
-    return out
-
-
-def _majority_into(centres: np.ndarray, x: np.ndarray, labels: np.ndarray) -> None:
-    """Set ``centres[j]`` (packed bits) to the bit-wise majority of the rows of ``x`` labelled ``j``
-    (rows of a label no descriptor has are left as they are)."""
-    order = np.argsort(labels, kind="stable")
-    lab = labels[order]
-    starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
-    bits = np.unpackbits(x[order], axis=1)
-    sums = np.add.reduceat(bits, starts, axis=0, dtype=np.int32)
-    counts = np.diff(np.r_[starts, len(lab)])
-    centres[lab[starts]] = np.packbits(2 * sums >= counts[:, None], axis=1)
-
-
 def _kmeans_job(item: tuple[np.ndarray, int, int, bool]) -> tuple[np.ndarray, np.ndarray]:
     """One cluster's split (a task of :meth:`Vocabulary.train`): ``(rows, k, seed, binary)``, rows
     packed bits when ``binary``."""
@@ -117,9 +91,8 @@ class Vocabulary:
     # ------------------------------------------------------------------ training
     @classmethod
     def train(cls, descriptors: np.ndarray, kind: str, words: int = 4096, seed: int = 0,
-              max_samples: int = 200_000, depth: int | None = None, mapper=None) -> Vocabulary:
+              max_samples: int = 200_000, mapper=None) -> Vocabulary:
         """Tree with about ``words`` leaves from (N, D) descriptors (subsampled to ``max_samples``);
-        ``depth``: levels of the tree (default: 1 up to 64 words, 2 up to 4096, else 3);
         ``mapper(fn, items)``: an ordered parallel map (``Executor.map``) for the independent
         k-means runs of each level's clusters — the same tree with any mapper."""
         det = detector(kind)
@@ -130,9 +103,7 @@ class Vocabulary:
         if n > max_samples:
             descriptors = descriptors[np.sort(rng.choice(n, max_samples, replace=False))]
         words = max(2, min(int(words), len(descriptors)))
-        if depth is None:
-            depth = 1 if words <= 64 else (2 if words <= 4096 else 3)
-        depth = max(1, int(depth))
+        depth = 1 if words <= 64 else (2 if words <= 4096 else 3)
         k = max(2, math.ceil(words ** (1.0 / depth)))
         if det.binary:
             bits = np.unpackbits(np.ascontiguousarray(descriptors, np.uint8), axis=1).astype(np.float32)
@@ -235,38 +206,6 @@ class Vocabulary:
         while level + 1 < self.depth and len(self.centres[level + 1]) <= max_groups:
             level += 1
         return level
-
-    def truncated(self, level: int) -> Vocabulary:
-        """The tree down to ``level`` (its nodes become the words)."""
-        if not 0 <= level < self.depth:
-            raise ValueError(f"level {level} outside the tree's 0..{self.depth - 1}")
-        return Vocabulary(self.centres[: level + 1], self.children[:level], self.kind)
-
-    def refined(self, descriptors: np.ndarray, max_words: int, iterations: int = 2) -> Vocabulary:
-        """This (generic) tree adapted to a map: top-down, each level's centres are moved to the
-        bit-wise majority of the map's (N, B) binary descriptors that reach them (``iterations``
-        Lloyd steps, Hamming assignment among the parent's children), down to the deepest level with
-        at most ``max_words`` nodes, which become the words. Centres no descriptor reaches stay.
-        Hamming popcounts on packed bits: ~100x cheaper than training a tree with float k-means,
-        which is what lets a map get its own vocabulary in a fraction of its feature extraction."""
-        if not self.binary:
-            raise ValueError("refined() needs a binary vocabulary")
-        x = np.ascontiguousarray(descriptors, np.uint8)
-        last = 0
-        while last + 1 < self.depth and len(self.centres[last + 1]) <= max_words:
-            last += 1
-        centres = [c.copy() for c in self.centres[: last + 1]]
-        n = len(x)
-        if n == 0:
-            return Vocabulary(tuple(centres), self.children[:last], self.kind)
-        parent = None
-        for level in range(last + 1):
-            c = centres[level]
-            kids = None if level == 0 else self.children[level - 1][parent]  # (N, k) candidate centres
-            for _ in range(max(1, iterations)):
-                _majority_into(c, x, _nearest(x, c, kids))
-            parent = _nearest(x, c, kids)
-        return Vocabulary(tuple(centres), self.children[:last], self.kind)
 
     # ------------------------------------------------------------------ persistence
     def to_arrays(self) -> dict[str, np.ndarray]:
@@ -411,15 +350,30 @@ class BowIndex:
         fresh = self._from_word_lists(self.vocabulary, np.concatenate([self.node_ids, ids]), self._word_lists() + new, per_feature)
         self.__dict__.update(fresh.__dict__)
 
+    #: Postings handled at once when weighting a very large index (bounds the float64 temporaries).
+    REWEIGHT_CHUNK = 1 << 26
+
     def _reweight(self) -> None:
         n = len(self.node_ids)
-        self.df = np.diff(self.indptr).astype(np.float32)
+        lengths = np.diff(self.indptr)
+        self.df = lengths.astype(np.float32)
         self.idf = np.log((n + 1.0) / (self.df + 1.0)).astype(np.float32)
-        words = np.repeat(np.arange(self.vocabulary.size), np.diff(self.indptr))
-        w = self.counts * self.idf[words]
-        self.norms = np.sqrt(np.bincount(self.rows, weights=w * w, minlength=n)).astype(np.float32)
+        # per posting: its word's idf times its count (float32, like the counts), then the unit vectors
+        w = np.repeat(self.idf, lengths)
+        w *= self.counts
+        chunk = self.REWEIGHT_CHUNK
+        if len(w) <= chunk:  # one pass (every real map): the sums in posting order
+            norms = np.bincount(self.rows, weights=w * w, minlength=n)
+        else:  # a million nodes: the same sums, chunk by chunk, without 8-byte-per-posting temporaries
+            norms = np.zeros(n, np.float64)
+            for s in range(0, len(w), chunk):
+                part = w[s : s + chunk]
+                norms += np.bincount(self.rows[s : s + chunk], weights=part * part, minlength=n)
+        self.norms = np.sqrt(norms).astype(np.float32)
         self.norms[self.norms == 0] = 1.0
-        self._weights = (w / self.norms[self.rows]).astype(np.float32)  # posting weights of unit vectors
+        for s in range(0, len(w), chunk):
+            w[s : s + chunk] /= self.norms[self.rows[s : s + chunk]]
+        self._weights = w  # posting weights of unit vectors, float32
         # the same postings as a (V, N) CSR matrix sharing the arrays (int32 row pointers when they fit)
         indptr = self.indptr.astype(np.int32) if len(self.rows) < 2**31 else self.indptr
         self._matrix = sp.csr_matrix((self._weights, self.rows, indptr), shape=(self.vocabulary.size, n), copy=False)
