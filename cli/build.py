@@ -70,7 +70,7 @@ def build(
     append: bool = typer.Option(False, "--append", help="Add this sequence to the existing map, linked by loop closures."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing map file."),
     no_images: bool = typer.Option(False, "--no-images", help="Do not store keyframe images (maps that only localize and navigate; thumbnails stay)."),
-    image_quality: int = typer.Option(None, "--image-quality", help="JPEG quality of the stored keyframe images, 1..100 [default: the preset's, 50].", metavar="Q"),
+    image_quality: int = typer.Option(None, "--image-quality", help="JPEG quality of the stored keyframe images, 1..100 [default: the preset's, 40].", metavar="Q"),
     workers: int = typer.Option(None, "--workers", "-j", help="Worker processes for decoding, features and verification [default: every core]; 1 = in this process.", metavar="N"),
     dask: str = typer.Option(None, "--dask", help="'local': run the work on a Dask LocalCluster of --workers processes (needs the 'cluster' extra).", metavar="local"),
     scheduler: str = typer.Option(None, "--scheduler", help="Run the work on the Dask cluster at this address (tcp://HOST:8786); its workers must read SOURCE at the same path.", metavar="ADDRESS"),

@@ -514,26 +514,43 @@ def _loop_candidates(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig) -> Ite
 def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progress, *,
                  executor: Executor | None = None) -> int:
     """The loops stage: verify the appearance shortlist of every new node (pairs in parallel on
-    ``executor``, results in order); add ``loop`` edges. Returns how many."""
+    ``executor``, results in order); add ``loop`` edges. Returns how many. Shortlists are made
+    as the verifications ask for work (a few nodes ahead), not all at once."""
     if tmap.index is None or len(tmap.nodes) < 3:
         return 0
     executor = executor or InlineExecutor()
-    shortlists = list(_loop_candidates(tmap, new_ids, cfg))
+    # one entry per pair in submission order, and (nid, None, None, True) for nodes without pairs
+    order: deque[tuple[int, int | None, int | None, bool]] = deque()
 
     def tasks():
-        for nid, pairs in shortlists:
-            for a, b in pairs:
+        for nid, pairs in _loop_candidates(tmap, new_ids, cfg):
+            if not pairs:
+                order.append((nid, None, None, True))
+            for j, (a, b) in enumerate(pairs):
+                order.append((nid, a, b, j == len(pairs) - 1))
                 yield tmap.nodes[a].features, tmap.nodes[b].features, cfg.match
 
-    results = executor.map(_verify_task, tasks(), window=4 * executor.workers)
-    added = 0
-    for i, (nid, pairs) in enumerate(shortlists):
-        for a, b in pairs:
-            v = next(results)
-            if v.inliers >= cfg.loop_min_inliers and v.inlier_ratio >= cfg.loop_min_inlier_ratio:
-                tmap.add_edge(Edge(a, b, EdgeKind.LOOP, v.inliers, v.similarity, v.flow_px))
-                added += 1
-        _report(on_progress, "loops", i + 1, len(new_ids), tmap)
+    added = done = 0
+
+    def node_done() -> None:
+        nonlocal done
+        done += 1
+        _report(on_progress, "loops", done, len(new_ids), tmap)
+
+    def nodes_without_pairs() -> None:
+        while order and order[0][1] is None:
+            order.popleft()
+            node_done()
+
+    for v in executor.map(_verify_task, tasks(), window=4 * executor.workers):
+        nodes_without_pairs()
+        _, a, b, last = order.popleft()
+        if v.inliers >= cfg.loop_min_inliers and v.inlier_ratio >= cfg.loop_min_inlier_ratio:
+            tmap.add_edge(Edge(a, b, EdgeKind.LOOP, v.inliers, v.similarity, v.flow_px))
+            added += 1
+        if last:
+            node_done()
+    nodes_without_pairs()
     return added
 
 

@@ -112,7 +112,7 @@ class BuildConfig:
     # Nothing in localization or navigation reads them (features and descriptors are stored apart):
     # they are for people and plots, so a modest JPEG quality keeps maps compact (docs/build.md).
     image_format: str = "jpeg"
-    image_quality: int = 50  # JPEG quality of the keyframe images, 1..100
+    image_quality: int = 40  # JPEG quality of the keyframe images, 1..100
     thumbnail_quality: int = 85  # JPEG quality of the thumbnails, 1..100
     seed: int = 0  # every random choice (vocabulary k-means, RANSAC) derives from this
 

@@ -201,7 +201,7 @@ class DaskExecutor(Executor):
         if not nthreads:
             self.close()
             raise ClusterError(f"the Dask scheduler at {address} has no workers; start some with `dask worker {address}`")
-        if self._cluster is None:
+        if processes or self._cluster is None:  # worker processes (threads would share this one's OpenCV)
             self._client.run(_init_worker)
         self.address = address or self._cluster.scheduler_address
 
