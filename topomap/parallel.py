@@ -123,11 +123,11 @@ class InlineExecutor(Executor):
 
 
 class ProcessExecutor(Executor):
-    """A pool of ``workers`` local processes (``concurrent.futures``), started at once: forked when
-    this process runs a single thread (Linux; a worker is ready in milliseconds), else from a fork
-    server that imports topomap once (a few seconds, once per process). Never forked from a process
-    with threads: OpenCV's thread pool (native threads, invisible to ``threading``) does not survive
-    a fork, and a forked worker that calls OpenCV afterwards waits forever."""
+    """A pool of ``workers`` local processes (``concurrent.futures``), started at once from a fork
+    server that imports topomap once (about a second, once per process; later pools start in
+    milliseconds), else (Windows) spawned. Never forked from this process:
+    numpy and OpenCV run native threads from import on, and OpenCV's thread pool does not survive a
+    fork (a forked worker that called OpenCV after the parent had used it waited forever)."""
 
     kind = "processes"
 
@@ -136,9 +136,7 @@ class ProcessExecutor(Executor):
             raise ConfigError(f"--workers must be at least 1, got {workers}")
         self.workers = int(workers)
         methods = mp.get_all_start_methods()
-        if "fork" in methods and _single_threaded():
-            ctx = mp.get_context("fork")
-        elif "forkserver" in methods:
+        if "forkserver" in methods:
             ctx = mp.get_context("forkserver")
             ctx.set_forkserver_preload(["topomap.build"])
         else:
@@ -150,16 +148,12 @@ class ProcessExecutor(Executor):
     def submit(self, fn: Callable, *args) -> _Future:
         return self._pool.submit(fn, *args)
 
+    def worker_pids(self) -> list[int]:
+        """Process ids of the live workers (for memory accounting: they are not this process's children)."""
+        return sorted(p.pid for p in (self._pool._processes or {}).values() if p.pid is not None)
+
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
-
-
-def _single_threaded() -> bool:
-    """This process runs exactly one thread, native ones included (Linux ``/proc``; elsewhere: unknown, False)."""
-    try:
-        return len(os.listdir("/proc/self/task")) == 1
-    except OSError:
-        return False
 
 
 class DaskExecutor(Executor):
