@@ -525,6 +525,7 @@ def scheduler():
         yield cluster.scheduler_address
 
 
+@pytest.mark.slow
 def test_workers_and_scheduler_build_the_same_map(runner, cli_app, walk, scheduler, tmp_path):
     maps = {}
     for name, args in (("one", ["--workers", "1"]), ("two", ["--workers", "2"]), ("dask", ["--scheduler", scheduler])):

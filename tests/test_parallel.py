@@ -139,12 +139,14 @@ def walk_inline(walk, tmp_path_factory):
     return map_rows(save_map(build_map(walk, FAST), tmp_path_factory.mktemp("p1") / "m.topomap"))
 
 
+@pytest.mark.slow
 def test_two_workers_build_the_same_map(walk, walk_inline, pool, tmp_path):
     m = build_map(walk, FAST, executor=pool)
     assert len(m.nodes) >= 3 and m.edges_by_kind()["loop"] >= 1
     assert map_rows(save_map(m, tmp_path / "m.topomap")) == walk_inline
 
 
+@pytest.mark.slow
 def test_dask_builds_the_same_map(walk, walk_inline, dask_threads, tmp_path):
     m = build_map(walk, FAST, executor=dask_threads)
     assert map_rows(save_map(m, tmp_path / "m.topomap")) == walk_inline
