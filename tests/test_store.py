@@ -29,7 +29,6 @@ from topomap.store import (
     export_graphml,
     export_json,
     load_map,
-    decode_image,
     load_node_image,
     save_map,
     update_map,
@@ -55,6 +54,11 @@ def files_in(folder: Path) -> list[str]:
 
 
 # ----------------------------------------------------------------------------- round trip
+def decode_image(data: bytes, what: str = "") -> np.ndarray:
+    """Stored image bytes (JPEG or PNG) as pixels."""
+    return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+
+
 def test_round_trip_preserves_everything(built):
     m, path = built
     assert m.edges_by_kind()["loop"] >= 1  # the fixture really closes loops

@@ -34,7 +34,7 @@ from topomap.errors import ConfigError, DatasetError, MapFormatError, TopomapErr
 from topomap.features import Features, detector
 from topomap.graph import Edge, EdgeKind, FrameRecord, Node, TopoMap
 
-__all__ = ["SCHEMA_VERSION", "FORMAT_NAME", "save_map", "load_map", "update_map", "load_node_image", "encode_image", "decode_image", "check_writable", "export_json", "export_graphml"]
+__all__ = ["SCHEMA_VERSION", "FORMAT_NAME", "save_map", "load_map", "update_map", "load_node_image", "encode_image", "check_writable", "export_json", "export_graphml"]
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +138,7 @@ def encode_image(img: np.ndarray, fmt: str = "png", quality: int = 90) -> bytes:
     return buf.tobytes()
 
 
-def decode_image(data: bytes | None, what: str) -> np.ndarray | None:
+def _decode_image(data: bytes | None, what: str) -> np.ndarray | None:
     """Stored image bytes (PNG or JPEG: maps written before JPEG hold PNG) -> ``(H, W) uint8``."""
     if data is None:
         return None
@@ -379,8 +379,8 @@ def _read(con: sqlite3.Connection, path: Path, images: bool) -> TopoMap:
         node = Node(
             id=nid, sequence=seq, frame_id=frame_id, source=source,
             features=Features(kp, de, fkind, (w, h)),
-            thumbnail=decode_image(thumb, f"thumbnail of node {nid}"),
-            image=decode_image(row[11], f"image of node {nid}") if images else None,
+            thumbnail=_decode_image(thumb, f"thumbnail of node {nid}"),
+            image=_decode_image(row[11], f"image of node {nid}") if images else None,
             descriptor=_unpack(d_blob, d_dt, d_shape, f"descriptor of node {nid}") if d_blob is not None else None,
             pose_gt=tuple(json.loads(pose)) if pose else None,
         )
@@ -417,7 +417,7 @@ def load_node_image(path: str | Path, node_id: int) -> np.ndarray | None:
         from topomap.errors import NodeNotFoundError
 
         raise NodeNotFoundError(f"node {node_id} is not in map {path.name}")
-    return decode_image(row[0], f"image of node {node_id}")
+    return _decode_image(row[0], f"image of node {node_id}")
 
 
 # ---------------------------------------------------------------------- export
