@@ -1,8 +1,8 @@
 """Run every benchmark, one after the other: ``python benchmarks/run_all.py [--quick] [--only NAME ...]``.
 
 Each benchmark prints its own table with a ratio against a baseline measured in the same run (these
-machines are noisy). ``--quick`` shrinks the long ones (scale: 1k and 10k nodes; navigation: 8
-episodes) for a smoke run; the figures quoted in the docs come from the full run.
+machines are noisy). ``--quick`` shrinks the long ones (scale: 1k and 10k nodes; build scale: 1k
+frames and a 100k-node index; navigation: 8 episodes) for a smoke run; the figures quoted in the docs come from the full run.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ HERE = Path(__file__).resolve().parent
 #: name -> (full arguments, quick arguments)
 BENCHMARKS = {
     "build": ([], []),
+    "build_scale": ([], ["--sizes", "1000", "--query-nodes", "100000"]),
     "localize": ([], ["--dataset", "corridor", "--no-exhaustive-480"]),
     "scale": ([], ["--sizes", "1000,10000"]),
     "servo": ([], ["--trials", "100"]),

@@ -19,6 +19,7 @@ from topomap.config import BUILD_PRESETS, build_preset
 from topomap.errors import DatasetError
 from topomap.features import detector
 from topomap.images import open_sequence
+from topomap.parallel import make_executor
 from topomap.store import (
     check_writable,
     export_graphml,
@@ -78,12 +79,25 @@ def build(
     every: int = typer.Option(1, "--every", help="Use every N-th frame (videos and folders)."),
     append: bool = typer.Option(False, "--append", help="Add this sequence to the existing map, linked by loop closures."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing map file."),
+    no_images: bool = typer.Option(False, "--no-images", help="Do not store keyframe images (maps that only localize and navigate; thumbnails stay)."),
+    image_quality: int = typer.Option(None, "--image-quality", help="JPEG quality of the stored keyframe images, 1..100 [default: the preset's, 40].", metavar="Q"),
+    workers: int = typer.Option(None, "--workers", "-j", help="Worker processes for decoding, features and verification [default: every core]; 1 = in this process.", metavar="N"),
+    dask: str = typer.Option(None, "--dask", help="'local': run the work on a Dask LocalCluster of --workers processes (needs the 'cluster' extra).", metavar="local"),
+    scheduler: str = typer.Option(None, "--scheduler", help="Run the work on the Dask cluster at this address (tcp://HOST:8786); its workers must read SOURCE at the same path.", metavar="ADDRESS"),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
 ) -> None:
     """Build a topological map from an image sequence."""
     if append and force:
         fail("--append and --force exclude each other: --append extends the map, --force replaces it")
+    if workers is not None and workers < 1:
+        fail(f"--workers must be at least 1, got {workers}")
+    if append and (no_images or image_quality is not None):
+        fail("--no-images and --image-quality are the map's own settings; they cannot change when appending")
     config = build_preset(preset)
+    if no_images:
+        config = dataclasses.replace(config, store_images=False)
+    if image_quality is not None:
+        config = dataclasses.replace(config, image_quality=image_quality)
     if features is not None:
         detector(features)
         config = dataclasses.replace(config, features=dataclasses.replace(config.features, kind=features.lower()))
@@ -96,9 +110,11 @@ def build(
     cam = load_camera(camera) if camera is not None else None
     if cam is not None and seq.camera is not None and not append:
         err_console.print(f"[dim]--camera {camera.name} is used instead of {seq.camera.source}[/]")
+    executor = make_executor(workers, dask=dask, scheduler=scheduler)  # an unreachable scheduler fails here
     with contextlib.ExitStack() as stack:
         # --append: the map's write lock is held from reading the map to the commit, so a concurrent
         # `index` or `--append` waits (or is refused with one line) instead of being overwritten
+        stack.enter_context(executor)
         update = stack.enter_context(open_for_update(output)) if append else None
         base = update.map if update is not None else None
         t0 = time.perf_counter()
@@ -114,7 +130,7 @@ def build(
                 bar.update(tasks[p.stage], total=p.total or None, completed=p.done, info=info)
 
             m = build_map(seq, None if append and features is None else config, cam, base=base,
-                          on_progress=on_progress)
+                          on_progress=on_progress, executor=executor)
         if update is not None:
             update.commit(m)
         else:
@@ -130,6 +146,7 @@ def build(
         "nodes_added": run["nodes_added"],
         **{k: v for k, v in m.summary().items() if k in ("nodes", "frames", "edges", "edges_by_kind", "components")},
         "features": m.feature_kind,
+        "workers": executor.describe(),
         "seconds": round(seconds, 2),
         "frames_per_second": round(run["frames"] / seconds, 2) if seconds > 0 else None,
         "file_bytes": output.stat().st_size,
@@ -145,7 +162,7 @@ def build(
     t.add_row("edges", f"{summary['edges']}  " + ", ".join(f"{k} {v}" for k, v in summary["edges_by_kind"].items()))
     t.add_row("components", str(summary["components"]))
     t.add_row("features", f"{m.feature_kind}, working size {m.working_size[0]}x{m.working_size[1]}, camera: {m.camera.source}")
-    t.add_row("time", f"{seconds:.1f} s  ({summary['frames_per_second']} frames/s)")
+    t.add_row("time", f"{seconds:.1f} s  ({summary['frames_per_second']} frames/s; {summary['workers']})")
     t.add_row("file", f"{output}  ({summary['file_bytes'] / 1e6:.1f} MB)")
     console.print(t)
 

@@ -513,3 +513,98 @@ def test_bomb_and_odd_entries_in_a_build_folder_are_skipped_and_counted(runner, 
     assert "declares 30000x30000 pixels" in reasons["a0_bomb.png"] and "is a folder" in reasons["x.jpg"]
     m = load_map(tmp_path / "m.topomap")
     assert m.working_size == (480, 360) and "caf\\xe9.png" in [f.source for f in m.frames]
+
+
+# ============================================================================= workers, Dask, compact maps (issue 17)
+def map_contents(path: Path) -> dict:
+    """Every row of a map file but the header lines that record when and how fast it was built."""
+    con = sqlite3.connect(path)
+    try:
+        rows = {t: con.execute(f"SELECT * FROM {t} ORDER BY 1, 2").fetchall() for t in ("node", "feature", "edge", "frame", "array")}
+        meta = {k: json.loads(v) for k, v in con.execute("SELECT key, value FROM meta")}
+    finally:
+        con.close()
+    for k in ("created_utc", "modified_utc"):
+        meta.pop(k)
+    for s in meta["sequences"]:
+        s.pop("seconds")
+    return {**rows, "meta": meta}
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["--workers", "0"], "--workers must be at least 1, got 0"),
+    (["--workers", "-3"], "--workers must be at least 1"),
+    (["--dask", "cloud"], "--dask takes 'local'"),
+    (["--dask", "local", "--scheduler", "tcp://127.0.0.1:9"], "exclude each other"),
+    (["--scheduler", "tcp://127.0.0.1:9"], "cannot reach the Dask scheduler at tcp://127.0.0.1:9"),
+    (["--scheduler", "127.0.0.1"], "not a tcp://HOST:PORT address"),
+    (["--image-quality", "0"], "image_quality=0 must lie in 1..100"),
+])
+def test_bad_worker_and_image_options(runner, cli_app, walk, tmp_path, args, fragment):
+    out = tmp_path / "m.topomap"
+    assert_error(runner.invoke(cli_app, ["build", str(walk[0]), "-o", str(out), *QUICK, *args]), fragment)
+    assert files_in(tmp_path) == []  # no half map
+
+
+def test_unreachable_scheduler_keeps_an_existing_map(runner, cli_app, walk, walk_copy):
+    before = walk_copy.read_bytes()
+    assert_error(runner.invoke(cli_app, ["build", str(walk[0]), "-o", str(walk_copy), "--force", *QUICK,
+                                         "--scheduler", "tcp://127.0.0.1:9"]), "cannot reach")
+    assert walk_copy.read_bytes() == before
+
+
+@pytest.fixture(scope="module")
+def scheduler():
+    """The address of a small Dask cluster whose workers are threads of this process."""
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp://", host="127.0.0.1",
+                      dashboard_address=":0") as cluster:
+        yield cluster.scheduler_address
+
+
+@pytest.mark.slow
+def test_workers_and_scheduler_build_the_same_map(runner, cli_app, walk, scheduler, tmp_path):
+    maps = {}
+    for name, args in (("one", ["--workers", "1"]), ("two", ["--workers", "2"]), ("dask", ["--scheduler", scheduler])):
+        summary = build_json(runner, cli_app, walk[0], "-o", tmp_path / f"{name}.topomap", *QUICK, *args)
+        assert ("dask" in summary["workers"]) == (name == "dask")
+        maps[name] = map_contents(tmp_path / f"{name}.topomap")
+    assert len(maps["one"]["node"]) >= 3
+    assert maps["two"] == maps["one"] and maps["dask"] == maps["one"]
+
+
+def test_a_worker_that_cannot_read_the_images(runner, cli_app, walk, scheduler, tmp_path, monkeypatch):
+    """Workers that do not see the images at this machine's paths: one line, exit 1, no map."""
+    def blind(task):
+        if task.image is not None:
+            return task.image, None, False
+        return None, f"image {task.path} does not exist", True
+
+    monkeypatch.setattr(build_mod, "_decode", blind)  # the workers are threads of this process
+    out = tmp_path / "m.topomap"
+    assert_error(runner.invoke(cli_app, ["build", str(walk[0]), "-o", str(out), *QUICK, "--scheduler", scheduler]),
+                 "a Dask worker cannot read", "same path", alone=False)
+    assert files_in(tmp_path) == []
+
+
+@pytest.mark.slow
+def test_dask_local_cluster_builds_the_same_map(runner, cli_app, walk, tmp_path):
+    one = build_json(runner, cli_app, walk[0], "-o", tmp_path / "one.topomap", *QUICK, "--workers", "1")
+    dask = build_json(runner, cli_app, walk[0], "-o", tmp_path / "dask.topomap", *QUICK, "--dask", "local", "--workers", "2")
+    assert "dask" in dask["workers"] and dask["nodes"] == one["nodes"]
+    assert map_contents(tmp_path / "dask.topomap") == map_contents(tmp_path / "one.topomap")
+
+
+def test_no_images_and_image_quality(runner, cli_app, walk, tmp_path):
+    full = build_json(runner, cli_app, walk[0], "-o", tmp_path / "full.topomap", *QUICK, "--workers", "1")
+    bare = build_json(runner, cli_app, walk[0], "-o", tmp_path / "bare.topomap", *QUICK, "--workers", "1", "--no-images")
+    low = build_json(runner, cli_app, walk[0], "-o", tmp_path / "low.topomap", *QUICK, "--workers", "1", "--image-quality", "20")
+    assert bare["nodes"] == full["nodes"] == low["nodes"]
+    assert bare["file_bytes"] < low["file_bytes"] < full["file_bytes"]
+    con = sqlite3.connect(tmp_path / "bare.topomap")
+    assert con.execute("SELECT COUNT(*) FROM node WHERE image IS NOT NULL").fetchone() == (0,)
+    assert info_json(runner, cli_app, tmp_path / "low.topomap")["build_config"]["image_quality"] == 20
+    # the features, edges and index are the same: only the images differ
+    a, b = map_contents(tmp_path / "bare.topomap"), map_contents(tmp_path / "full.topomap")
+    assert a["feature"] == b["feature"] and a["edge"] == b["edge"] and a["array"] == b["array"]

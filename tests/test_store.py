@@ -59,6 +59,11 @@ def files_in(folder: Path) -> list[str]:
 
 
 # ----------------------------------------------------------------------------- round trip
+def decode_image(data: bytes, what: str = "") -> np.ndarray:
+    """Stored image bytes (JPEG or PNG) as pixels."""
+    return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+
+
 def test_round_trip_preserves_everything(built):
     m, path = built
     assert m.edges_by_kind()["loop"] >= 1  # the fixture really closes loops
@@ -71,8 +76,12 @@ def test_round_trip_preserves_everything(built):
         for name in ("keypoints", "descriptors"):  # bit-exact, same dtype
             x, y = getattr(n.features, name), getattr(b.features, name)
             assert x.dtype == y.dtype and x.tobytes() == y.tobytes()
-        np.testing.assert_array_equal(b.thumbnail, n.thumbnail)
-        np.testing.assert_array_equal(b.image, n.image)
+        # images are JPEG by default: the thumbnail comes back within JPEG error, the keyframe image
+        # as the build encoded it
+        assert b.thumbnail.shape == n.thumbnail.shape
+        assert np.abs(b.thumbnail.astype(int) - n.thumbnail).mean() < 6  # a noise texture: JPEG's worst case
+        assert n.image is None and n.image_data[:2] == b"\xff\xd8"  # kept encoded during the build
+        np.testing.assert_array_equal(b.image, decode_image(n.image_data, "image"))
         assert b.descriptor.dtype == np.float32 and b.descriptor.tobytes() == n.descriptor.tobytes()
     assert back.edges == m.edges
     assert back.frames == m.frames
@@ -92,9 +101,36 @@ def test_load_without_images_and_node_image(built):
     m, path = built
     light = load_map(path)
     assert all(n.image is None for n in light.nodes.values())
-    np.testing.assert_array_equal(load_node_image(path, 1), m.nodes[1].image)
+    np.testing.assert_array_equal(load_node_image(path, 1), decode_image(m.nodes[1].image_data, "image"))
     with pytest.raises(NodeNotFoundError, match="node 99"):
         load_node_image(path, 99)
+
+
+def test_png_images_round_trip_exactly_and_jpeg_within_its_error(built, tmp_path):
+    m, _ = built
+    src = next(iter(m.nodes.values()))
+    image = decode_image(src.image_data, "image")
+    for fmt, tol in (("png", 0), ("jpeg", 6)):
+        cfg = BuildConfig(features=FeatureConfig(max_features=500), image_format=fmt, image_quality=75)
+        one = TopoMap(camera=m.camera, config=cfg)
+        one.add_node(Node(0, 0, 0, "a.png", src.features, src.thumbnail, image=image))
+        path = save_map(one, tmp_path / f"{fmt}.topomap")
+        blob = sqlite3.connect(path).execute("SELECT image, thumbnail FROM node").fetchone()
+        magic = b"\x89PNG" if fmt == "png" else b"\xff\xd8"
+        assert blob[0][:4].startswith(magic) and blob[1][:4].startswith(magic)
+        back = load_map(path, images=True).nodes[0]
+        assert np.abs(back.image.astype(int) - image).mean() <= tol
+        assert np.abs(back.thumbnail.astype(int) - src.thumbnail).mean() <= tol
+
+
+def test_no_images_stores_no_keyframe_image(tmp_path):
+    import dataclasses
+
+    write_out_and_back(tmp_path / "imgs")
+    m = build_map(tmp_path / "imgs", dataclasses.replace(FAST, store_images=False))
+    path = save_map(m, tmp_path / "m.topomap")
+    assert sqlite3.connect(path).execute("SELECT COUNT(*) FROM node WHERE image IS NOT NULL").fetchone() == (0,)
+    assert load_node_image(path, 0) is None and all(n.thumbnail is not None for n in load_map(path).nodes.values())
 
 
 def test_sift_features_round_trip_bit_exact(tmp_path):

@@ -1,23 +1,37 @@
 """Image sequence -> keyframes -> sequential and loop-closure edges (THESIS.md section 4).
 
+The build reads as hloc's pipelines do, one stage after the other, each a plain function:
+sources (:func:`_frame_tasks`) -> features (:func:`prepare_frame`, per frame) -> keyframes
+(:func:`_select_keyframes`) -> index (:func:`build_index`) -> loops (:func:`_close_loops`); the
+store (``topomap.store``) writes the result. The per-frame and per-pair work is pure and goes to an
+:class:`~topomap.parallel.Executor` (in-process, a process pool or Dask), which hands results back
+in order: the map is the same at any worker count.
+
 Keyframing: each frame is matched to the current keyframe with epipolar verification. While they
 share enough verified matches, which moved little across the image, the frame is *represented* by the
 keyframe's node. When the matches fall below the threshold (or moved too far), the last frame that
 still matched well becomes the next keyframe (so
 consecutive keyframes keep plenty of common, verified features — servoing between them stays
 feasible, far above the 3-point minimum of THESIS.md section 3) and the frame is matched again
-against it; if even that fails, the frame itself starts a node.
+against it; if even that fails, the frame itself starts a node. The decisions are sequential, but
+with several workers the verifications of the next frames against the current keyframe are run
+ahead, in parallel (speculatively: those past a keyframe change are dropped), which gives the
+same keyframes as one frame at a time.
+
+Memory stays bounded whatever the length of the sequence: frames stream through a window of a few
+per worker; only keyframes are kept (features, thumbnail, descriptor, encoded image).
 
 Loop closure: once all frames are in, a bag-of-words index over the keyframes proposes, for each new
 node, the ``loop_shortlist_k`` most similar nodes (not all pairs); each candidate is verified
-geometrically and becomes a ``loop`` edge if it keeps enough epipolar inliers.
+geometrically (in parallel) and becomes a ``loop`` edge if it keeps enough epipolar inliers.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -25,15 +39,17 @@ import cv2
 import numpy as np
 
 from topomap.camera import CameraIntrinsics
-from topomap.config import BuildConfig
-from topomap.errors import ConfigError, DatasetError
+from topomap.config import BuildConfig, FeatureConfig, MatchConfig
+from topomap.errors import ClusterError, ConfigError, DatasetError
 from topomap.features import Features, detector, extract
 from topomap.graph import Edge, EdgeKind, FrameRecord, Node, TopoMap
-from topomap.images import ImageSequence, open_sequence, to_working_resolution, working_size
+from topomap.images import ImageSequence, open_sequence, read_image, to_working_resolution, working_size
 from topomap.matching import Verification, verify
+from topomap.parallel import Executor, InlineExecutor
 from topomap.retrieval import BowIndex, Vocabulary, thumbnail_descriptor, vocabulary_size
 
-__all__ = ["BuildProgress", "build_map", "build_index", "descriptor_size", "make_thumbnail"]
+__all__ = ["BuildProgress", "FrameTask", "PreparedFrame", "build_map", "build_index", "prepare_frame",
+           "descriptor_size", "make_thumbnail"]
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +86,104 @@ def make_thumbnail(image: np.ndarray, longest_px: int) -> np.ndarray:
     return cv2.resize(image, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
 
 
+# ============================================================================= stage: sources
+@dataclass(frozen=True)
+class FrameTask:
+    """One frame to prepare: read from ``path`` where the worker runs, or given as ``image``
+    ((H, W) uint8, decoded here: video frames); ``work_size``: ``(w, h)`` of the map."""
+
+    index: int
+    name: str
+    path: str | None
+    image: np.ndarray | None
+    work_size: tuple[int, int]
+    features: FeatureConfig
+    error: str | None = None
+
+
+@dataclass(frozen=True)
+class PreparedFrame:
+    """A frame after decoding and extraction. ``status``: ``ok`` | ``unreadable`` | ``too small``;
+    ``reason``: why it was skipped; ``missing``: the worker could not open the file at all (not a
+    damaged image); ``input_size``: ``(w, h)`` as read; ``image``: (h, w) uint8 at the working
+    resolution; ``features`` at that resolution (``None`` unless ``ok``)."""
+
+    index: int
+    name: str
+    status: str
+    reason: str | None = None
+    missing: bool = False
+    input_size: tuple[int, int] | None = None
+    image: np.ndarray | None = None
+    features: Features | None = None
+
+
+def _decode(task: FrameTask) -> tuple[np.ndarray | None, str | None, bool]:
+    """(image, error, missing) of a task: its given image or the file read here."""
+    if task.image is not None or task.path is None:
+        return task.image, task.error, False
+    try:
+        return read_image(task.path), None, False
+    except DatasetError as e:
+        return None, str(e), not Path(task.path).is_file()
+
+
+def prepare_frame(task: FrameTask) -> PreparedFrame:
+    """The features stage, for one frame (pure, runs on any worker): decode, check the size, bring to
+    the working resolution, extract local features."""
+    image, error, missing = _decode(task)
+    if image is None:
+        return PreparedFrame(task.index, task.name, "unreadable", error or "unreadable", missing)
+    h, w = image.shape
+    if min(w, h) < MIN_IMAGE_PX:
+        reason = f"{w}x{h} px is too small; images need at least {MIN_IMAGE_PX} px on each side"
+        return PreparedFrame(task.index, task.name, "too small", reason, input_size=(w, h))
+    work = to_working_resolution(image, task.work_size)
+    return PreparedFrame(task.index, task.name, "ok", input_size=(w, h), image=work, features=extract(work, task.features))
+
+
+def _first_readable(frames: Iterator, config: BuildConfig):
+    """Frames before the first readable one (they fix nothing) and that one, read here: its size
+    fixes the map's working size before any work is handed out."""
+    before = []
+    for frame in frames:
+        if frame.image is not None and min(frame.image.shape) >= MIN_IMAGE_PX:
+            return before, frame
+        before.append(frame)
+    return before, None
+
+
+def _frame_tasks(seq: ImageSequence, work_size: tuple[int, int], config: BuildConfig, start: int) -> Iterator[FrameTask]:
+    """The sequence's frames from ``start`` on as tasks: file paths (read by the workers) for
+    folders and lists, decoded images for videos."""
+    paths = seq.paths
+    if paths is not None:
+        for i in range(start, len(paths)):
+            yield FrameTask(i, paths[i].name, str(paths[i]), None, work_size, config.features)
+        return
+    for frame in seq:
+        if frame.index >= start:
+            yield FrameTask(frame.index, frame.name, None, frame.image, work_size, config.features, frame.error)
+
+
+# ============================================================================= stage: keyframes
+def _verify_pair(a: Features, b: Features, config: MatchConfig) -> Verification:
+    """Geometric verification of one pair (pure; a task of the keyframe and loop stages). The result
+    drops the fundamental matrix: no stage keeps it, and it would only travel back."""
+    v = verify(a, b, config)
+    return replace(v, F=None)
+
+
+def _verify_task(args: tuple[Features, Features, MatchConfig]) -> Verification:
+    return _verify_pair(*args)
+
+
+def _is_kept(v: Verification, keyframe: Features, cfg: BuildConfig) -> bool:
+    """The frame stays with the keyframe: enough verified matches, moved little across the image."""
+    need = max(cfg.keyframe_min_inliers, int(np.ceil(cfg.keyframe_min_ratio * len(keyframe))))
+    return v.inliers >= need and v.flow_px <= cfg.keyframe_max_flow * keyframe.image_size[0]
+
+
 @dataclass
 class _Candidate:
     """A frame that may become a keyframe: its record index, working image and features."""
@@ -80,12 +194,110 @@ class _Candidate:
     link: Verification | None = None  # verification against the keyframe it was matched to
 
 
-def _is_kept(v: Verification, keyframe: Features, cfg: BuildConfig) -> bool:
-    """The frame stays with the keyframe: enough verified matches, moved little across the image."""
-    need = max(cfg.keyframe_min_inliers, int(np.ceil(cfg.keyframe_min_ratio * len(keyframe))))
-    return v.inliers >= need and v.flow_px <= cfg.keyframe_max_flow * keyframe.image_size[0]
+class _Speculation:
+    """Verifications of upcoming frames against the current keyframe, run ahead on the executor.
+
+    ``depth`` of them are in flight at most (0: none, every verification is done when asked).
+    A keyframe change drops them (their answers were against the old keyframe): the keyframes are
+    exactly those of the one-at-a-time algorithm; only some work is wasted. To waste little, the
+    look-ahead follows how many frames a keyframe has kept lately.
+    """
+
+    def __init__(self, executor: Executor, match: MatchConfig, depth: int):
+        self.executor, self.match, self.max_depth = executor, match, max(0, depth)
+        self.keyframe: Features | None = None
+        self.futures: dict[int, object] = {}
+        self.run_length = float(self.max_depth)  # frames kept per keyframe, smoothed
+
+    def reset(self, keyframe: Features) -> None:
+        if self.keyframe is not None and self.keyframe is not keyframe:
+            for fut in self.futures.values():  # not started yet: never run
+                getattr(fut, "cancel", lambda: None)()
+            self.futures.clear()
+        self.keyframe = keyframe
+
+    def ahead(self, frames: Iterable[PreparedFrame]) -> None:
+        depth = min(self.max_depth, max(1, int(round(self.run_length))))
+        for f in frames:
+            if len(self.futures) >= depth:
+                break
+            if f.status == "ok" and f.index not in self.futures:
+                self.futures[f.index] = self.executor.submit(_verify_pair, self.keyframe, f.features, self.match)
+
+    def result(self, f: PreparedFrame) -> Verification:
+        fut = self.futures.pop(f.index, None)
+        return fut.result() if fut is not None else _verify_pair(self.keyframe, f.features, self.match)
+
+    def kept_run(self, frames_kept: int) -> None:
+        self.run_length = 0.7 * self.run_length + 0.3 * frames_kept
 
 
+def _select_keyframes(frames: Iterator[PreparedFrame], tmap: TopoMap, config: BuildConfig, sequence_id: int,
+                      executor: Executor, new_node: Callable, on_frame: Callable[[PreparedFrame], None]) -> None:
+    """The keyframes stage: assign every prepared frame (in order) to a node, creating nodes and
+    sequential edges through ``new_node(candidate, previous node, link)``."""
+    keyframe: _Candidate | None = None
+    keyframe_node = -1
+    last_good: _Candidate | None = None
+    kept = 0
+    spec = _Speculation(executor, config.match, executor.workers if executor.workers > 1 else 0)
+    lookahead = max(1, spec.max_depth)
+    buffer: deque[PreparedFrame] = deque()
+    source = iter(frames)
+    exhausted = False
+
+    def start_keyframe(c: _Candidate, node: int) -> None:
+        nonlocal keyframe, keyframe_node, kept
+        if keyframe is not None:
+            spec.kept_run(kept)
+        keyframe, keyframe_node, kept = c, node, 0
+        spec.reset(c.features)
+
+    while True:
+        while not exhausted and len(buffer) < lookahead + 1:
+            try:
+                buffer.append(next(source))
+            except StopIteration:
+                exhausted = True
+        if not buffer:
+            break
+        frame = buffer.popleft()
+        fid = len(tmap.frames)
+        if frame.status != "ok":
+            tmap.frames.append(FrameRecord(fid, sequence_id, frame.index, frame.name, None, frame.status))
+            on_frame(frame)
+            continue
+        tmap.frames.append(FrameRecord(fid, sequence_id, frame.index, frame.name, None, "ok"))
+        cand = _Candidate(fid, frame.image, frame.features)
+        if keyframe is None:
+            start_keyframe(cand, new_node(cand, None, None))
+            last_good = None
+        else:
+            spec.ahead(buffer)
+            v = spec.result(frame)
+            if _is_kept(v, keyframe.features, config):
+                tmap.frames[fid] = replace(tmap.frames[fid], node=keyframe_node)
+                cand.link, last_good = v, cand
+                kept += 1
+            else:
+                if last_good is not None:
+                    # the last frame that still matched well becomes the next keyframe
+                    prev = keyframe_node
+                    start_keyframe(last_good, new_node(last_good, prev, last_good.link))
+                    last_good = None
+                    v = _verify_pair(keyframe.features, frame.features, config.match)
+                if _is_kept(v, keyframe.features, config):
+                    tmap.frames[fid] = replace(tmap.frames[fid], node=keyframe_node)
+                    cand.link, last_good = v, cand
+                    kept += 1
+                else:
+                    prev = keyframe_node
+                    start_keyframe(cand, new_node(cand, prev, v))
+                    last_good = None
+        on_frame(frame)
+
+
+# ============================================================================= driver
 def build_map(
     source: str | Path | ImageSequence,
     config: BuildConfig | None = None,
@@ -94,16 +306,19 @@ def build_map(
     base: TopoMap | None = None,
     every: int = 1,
     on_progress: Callable[[BuildProgress], None] | None = None,
+    executor: Executor | None = None,
 ) -> TopoMap:
     """Build a map from an image sequence, or extend ``base`` with a new sequence (``--append``).
 
     ``source``: image folder, video, list file, ROS bag or an :class:`ImageSequence`; ``config``:
     defaults to :class:`BuildConfig` (for ``base`` the map's own config is used); ``camera``:
     intrinsics of the *input* images (default: the source's own, e.g. a bag's CameraInfo, else
-    :meth:`CameraIntrinsics.default`). Unreadable frames are skipped,
-    logged and recorded. Returns the map; ``map.sequences[-1]`` summarises this run.
+    :meth:`CameraIntrinsics.default`); ``executor``: where the per-frame and per-pair work runs
+    (default: this process; see :mod:`topomap.parallel` — the map is the same with any). Unreadable
+    frames are skipped, logged and recorded. Returns the map; ``map.sequences[-1]`` summarises this run.
     """
     t0 = time.perf_counter()
+    executor = executor or InlineExecutor()
     seq = source if isinstance(source, ImageSequence) else open_sequence(source, every)
     if base is not None:
         if config is not None and config.features.kind != base.config.features.kind:
@@ -121,23 +336,35 @@ def build_map(
     sequence_id = len(tmap.sequences)
     first_node = tmap.next_node_id()
     first_frame = len(tmap.frames)
-    work_size = tmap.working_size if base is not None else None
-    input_size: tuple[int, int] | None = None
-    skipped: list[tuple[str, str]] = []
     total = len(seq)
+    skipped: list[tuple[str, str]] = []
+    input_size: list[tuple[int, int] | None] = [None]
 
-    keyframe: _Candidate | None = None  # current keyframe (its node id is frames[...].node)
-    keyframe_node = -1
-    last_good: _Candidate | None = None
+    # the first readable frame (read here) fixes the working size of a new map
+    head_frames, first = _first_readable(iter(seq), config)
+    if base is not None:
+        work_size = tmap.working_size
+    elif first is not None:
+        h, w = first.image.shape
+        work_size = working_size(w, h, config.features.resize_max_px, config.features.upscale_min_px,
+                                 config.features.max_upscale)
+        cam_in = camera.fitted_to(w, h) if camera is not None else CameraIntrinsics.default(w, h)
+        tmap.camera = cam_in.fitted_to(*work_size)
+    else:
+        work_size = None
 
     def new_node(c: _Candidate, prev_node: int | None, link: Verification | None) -> int:
         nid = tmap.next_node_id()
         rec = tmap.frames[c.record]
+        image_data = None
+        if config.store_images:
+            from topomap.store import encode_image
+
+            image_data = encode_image(c.image, config.image_format, config.image_quality)
         tmap.add_node(
             Node(
                 id=nid, sequence=sequence_id, frame_id=rec.id, source=rec.source, features=c.features,
-                thumbnail=make_thumbnail(c.image, config.thumbnail_px),
-                image=c.image if config.store_images else None,
+                thumbnail=make_thumbnail(c.image, config.thumbnail_px), image_data=image_data,
                 descriptor=thumbnail_descriptor(c.image, descriptor_size(*work_size), DESCRIPTOR_PATCH),
             )
         )
@@ -148,57 +375,35 @@ def build_map(
                                v.similarity if v else 0.0, v.flow_px if v else 0.0))
         return nid
 
-    for frame in seq:
-        fid = len(tmap.frames)
-        if frame.image is None:
-            skipped.append((frame.name, frame.error or "unreadable"))
-            log.warning("skipped %s: %s", frame.name, frame.error)
-            tmap.frames.append(FrameRecord(fid, sequence_id, frame.index, frame.name, None, "unreadable"))
-            _report(on_progress, "frames", frame.index + 1, total, tmap)
-            continue
-        h, w = frame.image.shape
-        if min(w, h) < MIN_IMAGE_PX:
-            reason = f"{w}x{h} px is too small; images need at least {MIN_IMAGE_PX} px on each side"
-            skipped.append((frame.name, reason))
-            log.warning("skipped %s: %s", frame.name, reason)
-            tmap.frames.append(FrameRecord(fid, sequence_id, frame.index, frame.name, None, "too small"))
-            _report(on_progress, "frames", frame.index + 1, total, tmap)
-            continue
-        if work_size is None:
-            work_size = working_size(w, h, config.features.resize_max_px, config.features.upscale_min_px,
-                                     config.features.max_upscale)
-            cam_in = camera.fitted_to(w, h) if camera is not None else CameraIntrinsics.default(w, h)
-            tmap.camera = cam_in.fitted_to(*work_size)
-        if input_size is None:
-            input_size = (w, h)
-        elif (w, h) != input_size:
-            log.warning("%s is %dx%d, the sequence %dx%d: resized to the map's working size", frame.name, w, h, *input_size)
-        image = to_working_resolution(frame.image, work_size)
-        feats = extract(image, config.features)
-        tmap.frames.append(FrameRecord(fid, sequence_id, frame.index, frame.name, None, "ok"))
-        cand = _Candidate(fid, image, feats)
+    def on_frame(f: PreparedFrame) -> None:
+        if f.status != "ok":
+            if f.missing and executor.remote and _path_of(seq, f.index).is_file():
+                raise ClusterError(
+                    f"a Dask worker cannot read {_path_of(seq, f.index)} ({f.reason}); every worker must see the "
+                    "images at the same path as this machine (a shared file system), or build without --scheduler"
+                )
+            skipped.append((f.name, f.reason or f.status))
+            log.warning("skipped %s: %s", f.name, f.reason)
+        elif input_size[0] is None:
+            input_size[0] = f.input_size
+        elif f.input_size != input_size[0]:
+            log.warning("%s is %dx%d, the sequence %dx%d: resized to the map's working size", f.name, *f.input_size,
+                        *input_size[0])
+        _report(on_progress, "frames", f.index + 1, total, tmap)
 
-        if keyframe is None:
-            keyframe, keyframe_node, last_good = cand, new_node(cand, None, None), None
+    def prepared() -> Iterator[PreparedFrame]:
+        for f in head_frames:  # unreadable or too small, before the first readable frame
+            yield _skipped_frame(f)
+        if first is None:
+            return
+        if base is None:
+            yield prepare_frame(FrameTask(first.index, first.name, None, first.image, work_size, config.features))
+            start = first.index + 1
         else:
-            v = verify(keyframe.features, feats, config.match)
-            if _is_kept(v, keyframe.features, config):
-                tmap.frames[fid] = replace(tmap.frames[fid], node=keyframe_node)
-                cand.link, last_good = v, cand
-            else:
-                if last_good is not None:
-                    # the last frame that still matched well becomes the next keyframe
-                    prev = keyframe_node
-                    keyframe, keyframe_node = last_good, new_node(last_good, prev, last_good.link)
-                    last_good = None
-                    v = verify(keyframe.features, feats, config.match)
-                if _is_kept(v, keyframe.features, config):
-                    tmap.frames[fid] = replace(tmap.frames[fid], node=keyframe_node)
-                    cand.link, last_good = v, cand
-                else:
-                    prev = keyframe_node
-                    keyframe, keyframe_node, last_good = cand, new_node(cand, prev, v), None
-        _report(on_progress, "frames", frame.index + 1, total, tmap)
+            start = first.index
+        yield from executor.map(prepare_frame, _frame_tasks(seq, work_size, config, start), window=4 * executor.workers)
+
+    _select_keyframes(prepared(), tmap, config, sequence_id, executor, new_node, on_frame)
 
     read = sum(1 for f in tmap.frames[first_frame:] if f.status == "ok")
     if read == 0:
@@ -207,8 +412,8 @@ def build_map(
 
     tmap.meta["descriptor"] = {"kind": "thumbnail", "size": list(descriptor_size(*work_size)), "patch": DESCRIPTOR_PATCH}
     new_ids = [n for n in sorted(tmap.nodes) if n >= first_node]
-    build_index(tmap, on_progress)
-    loops = _close_loops(tmap, new_ids, config, on_progress)
+    build_index(tmap, on_progress, executor=executor)
+    loops = _close_loops(tmap, new_ids, config, on_progress, executor=executor)
     tmap.sequences.append(
         {
             "source": str(seq.source),
@@ -220,10 +425,24 @@ def build_map(
             "nodes_added": len(new_ids),
             "loop_edges_added": loops,
             "seconds": round(time.perf_counter() - t0, 3),
-            "input_size": list(input_size) if input_size else None,
+            "input_size": list(input_size[0]) if input_size[0] else None,
         }
     )
     return tmap
+
+
+def _path_of(seq: ImageSequence, index: int) -> Path:
+    paths = seq.paths
+    return paths[index] if paths is not None and 0 <= index < len(paths) else Path(seq.source)
+
+
+def _skipped_frame(frame) -> PreparedFrame:
+    """A frame read here that cannot be used (unreadable, or smaller than MIN_IMAGE_PX)."""
+    if frame.image is None:
+        return PreparedFrame(frame.index, frame.name, "unreadable", frame.error or "unreadable")
+    h, w = frame.image.shape
+    reason = f"{w}x{h} px is too small; images need at least {MIN_IMAGE_PX} px on each side"
+    return PreparedFrame(frame.index, frame.name, "too small", reason, input_size=(w, h))
 
 
 def _report(cb, stage: str, done: int, total: int, m: TopoMap) -> None:
@@ -231,11 +450,14 @@ def _report(cb, stage: str, done: int, total: int, m: TopoMap) -> None:
         cb(BuildProgress(stage, done, total, len(m.nodes), len(m.edges)))
 
 
-def build_index(tmap: TopoMap, on_progress: Callable[[BuildProgress], None] | None = None) -> BowIndex | None:
+# ============================================================================= stage: index
+def build_index(tmap: TopoMap, on_progress: Callable[[BuildProgress], None] | None = None, *,
+                executor: Executor | None = None) -> BowIndex | None:
     """(Re)build the map's place-recognition index from its nodes' features (``topomap index``).
 
-    The vocabulary is trained on the map's own keyframe descriptors (seeded k-means). A map whose
-    keyframes hold almost no features gets no index (``None``).
+    The vocabulary is trained on the map's own keyframe descriptors (seeded k-means; the clusters
+    of each level after the first are split in parallel on ``executor``). A map whose keyframes
+    hold almost no features gets no index (``None``).
     """
     _report(on_progress, "index", 0, 1, tmap)
     feats = {n.id: n.features for n in tmap.nodes.values()}
@@ -245,19 +467,23 @@ def build_index(tmap: TopoMap, on_progress: Callable[[BuildProgress], None] | No
         return None
     cfg = tmap.config
     desc = np.concatenate(desc)
-    voc = Vocabulary.train(desc, cfg.features.kind, vocabulary_size(len(desc), cfg.vocabulary_words), cfg.seed)
+    mapper = None
+    if executor is not None and executor.workers > 1:
+        def mapper(fn, items):
+            return executor.map(fn, items, window=2 * executor.workers)
+    voc = Vocabulary.train(desc, cfg.features.kind, vocabulary_size(len(desc), cfg.vocabulary_words), cfg.seed,
+                           mapper=mapper)
     tmap.index = BowIndex.build(voc, feats)
     _report(on_progress, "index", 1, 1, tmap)
     return tmap.index
 
 
-def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progress) -> int:
-    """Verify the appearance shortlist of every new node; add ``loop`` edges. Returns how many."""
-    index: BowIndex | None = tmap.index
-    if index is None or len(tmap.nodes) < 3:
-        return 0
+# ============================================================================= stage: loops
+def _loop_candidates(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig) -> Iterator[tuple[int, list[tuple[int, int]]]]:
+    """Per new node (in id order): the pairs its appearance shortlist proposes for verification,
+    each pair once over the whole stage, none already joined by an edge."""
+    index: BowIndex = tmap.index
     tested: set[tuple[int, int]] = set()
-    added = 0
     all_ids = set(tmap.nodes)
     by_sequence: dict[int, set[int]] = {}
     for n in tmap.nodes.values():
@@ -267,27 +493,66 @@ def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progres
         if e.kind is EdgeKind.SEQUENTIAL:
             seq_adj.setdefault(e.a, []).append(e.b)
             seq_adj.setdefault(e.b, []).append(e.a)
-    for i, nid in enumerate(new_ids):
+    existing = set(tmap.edges)
+    for nid in new_ids:
         node = tmap.nodes[nid]
-        if len(node.features) < cfg.match.min_inliers:
-            continue
-        near = _within_steps(seq_adj, nid, cfg.loop_min_separation)
-        scores = index.scores(node.features)
-        own = by_sequence[node.sequence]
-        candidates = index.top_k(scores, cfg.loop_shortlist_k, near | (all_ids - own))
-        if len(own) < len(all_ids):
-            candidates += index.top_k(scores, cfg.loop_shortlist_k, own)
-        for cid, score in candidates:
-            pair = (min(nid, cid), max(nid, cid))
-            if score <= 0 or pair in tested or pair in tmap.edges:
-                continue
-            tested.add(pair)
-            other = tmap.nodes[cid]
-            v = verify(node.features, other.features, cfg.match)
-            if v.inliers >= cfg.loop_min_inliers and v.inlier_ratio >= cfg.loop_min_inlier_ratio:
-                tmap.add_edge(Edge(nid, cid, EdgeKind.LOOP, v.inliers, v.similarity, v.flow_px))
-                added += 1
-        _report(on_progress, "loops", i + 1, len(new_ids), tmap)
+        pairs: list[tuple[int, int]] = []
+        if len(node.features) >= cfg.match.min_inliers:
+            near = _within_steps(seq_adj, nid, cfg.loop_min_separation)
+            scores = index.scores(node.features)
+            own = by_sequence[node.sequence]
+            candidates = index.top_k(scores, cfg.loop_shortlist_k, near | (all_ids - own))
+            if len(own) < len(all_ids):
+                candidates += index.top_k(scores, cfg.loop_shortlist_k, own)
+            for cid, score in candidates:
+                pair = (min(nid, cid), max(nid, cid))
+                if score <= 0 or pair in tested or pair in existing:
+                    continue
+                tested.add(pair)
+                pairs.append((nid, cid))
+        yield nid, pairs
+
+
+def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progress, *,
+                 executor: Executor | None = None) -> int:
+    """The loops stage: verify the appearance shortlist of every new node (pairs in parallel on
+    ``executor``, results in order); add ``loop`` edges. Returns how many. Shortlists are made
+    as the verifications ask for work (a few nodes ahead), not all at once."""
+    if tmap.index is None or len(tmap.nodes) < 3:
+        return 0
+    executor = executor or InlineExecutor()
+    # one entry per pair in submission order, and (nid, None, None, True) for nodes without pairs
+    order: deque[tuple[int, int | None, int | None, bool]] = deque()
+
+    def tasks():
+        for nid, pairs in _loop_candidates(tmap, new_ids, cfg):
+            if not pairs:
+                order.append((nid, None, None, True))
+            for j, (a, b) in enumerate(pairs):
+                order.append((nid, a, b, j == len(pairs) - 1))
+                yield tmap.nodes[a].features, tmap.nodes[b].features, cfg.match
+
+    added = done = 0
+
+    def node_done() -> None:
+        nonlocal done
+        done += 1
+        _report(on_progress, "loops", done, len(new_ids), tmap)
+
+    def nodes_without_pairs() -> None:
+        while order and order[0][1] is None:
+            order.popleft()
+            node_done()
+
+    for v in executor.map(_verify_task, tasks(), window=4 * executor.workers):
+        nodes_without_pairs()
+        _, a, b, last = order.popleft()
+        if v.inliers >= cfg.loop_min_inliers and v.inlier_ratio >= cfg.loop_min_inlier_ratio:
+            tmap.add_edge(Edge(a, b, EdgeKind.LOOP, v.inliers, v.similarity, v.flow_px))
+            added += 1
+        if last:
+            node_done()
+    nodes_without_pairs()
     return added
 
 

@@ -84,6 +84,10 @@ class MatchConfig:
             raise unknown_choice("ransac_method", self.ransac_method, RANSAC_METHODS)
 
 
+#: How keyframe images and thumbnails are encoded in the map (``BuildConfig.image_format``).
+IMAGE_FORMATS = {"jpeg": "lossy, quality BuildConfig.image_quality", "png": "lossless"}
+
+
 @dataclass(frozen=True)
 class BuildConfig:
     """Image sequence -> keyframes -> edges (see :mod:`topomap.build`)."""
@@ -109,7 +113,13 @@ class BuildConfig:
     loop_min_separation: int = 3
     vocabulary_words: int = 65536  # upper bound on visual words; the map's descriptors decide (8 per word)
     thumbnail_px: int = 128  # longest side of the stored thumbnails [px]
-    store_images: bool = True  # store each keyframe image (PNG) in the map
+    store_images: bool = True  # store each keyframe image in the map (False: maps that only localize)
+    # Keyframe images and thumbnails: jpeg (lossy, ~6x smaller than png on camera images) or png.
+    # Nothing in localization or navigation reads them (features and descriptors are stored apart):
+    # they are for people and plots, so a modest JPEG quality keeps maps compact (docs/build.md).
+    image_format: str = "jpeg"
+    image_quality: int = 40  # JPEG quality of the keyframe images, 1..100
+    thumbnail_quality: int = 85  # JPEG quality of the thumbnails, 1..100
     seed: int = 0  # every random choice (vocabulary k-means, RANSAC) derives from this
 
     def __post_init__(self) -> None:
@@ -129,6 +139,13 @@ class BuildConfig:
             raise ConfigError("loop_shortlist_k must be at least 1")
         if self.vocabulary_words < 16:
             raise ConfigError("vocabulary_words must be at least 16")
+        if self.image_format not in IMAGE_FORMATS:
+            raise unknown_choice("image format", self.image_format, IMAGE_FORMATS)
+        for name in ("image_quality", "thumbnail_quality"):
+            if not 1 <= getattr(self, name) <= 100:
+                raise ConfigError(f"{name}={getattr(self, name)} must lie in 1..100")
+        if self.thumbnail_px < 8:
+            raise ConfigError(f"thumbnail_px={self.thumbnail_px} is too small; use at least 8")
 
 
 @dataclass(frozen=True)

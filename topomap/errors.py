@@ -21,6 +21,7 @@ __all__ = [
     "NoRouteError",
     "IndexMissingError",
     "MissingExtraError",
+    "ClusterError",
     "unknown_choice",
 ]
 
@@ -62,6 +63,11 @@ class IndexMissingError(TopomapError):
 
 class MissingExtraError(TopomapError):
     """A feature needs an optional extra that is not installed (``pip install 'appearance-topomap[bags]'``...)."""
+
+
+class ClusterError(TopomapError):
+    """The workers of a build cannot be reached or cannot do their part (Dask scheduler down, a
+    worker that cannot read the images)."""
 
 
 def unknown_choice(what: str, value: object, choices: Iterable[str]) -> ConfigError:

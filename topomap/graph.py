@@ -44,6 +44,8 @@ class Node:
     ``source``: that image's file name; ``features``: its local features at the working resolution;
     ``thumbnail``: (h, w) uint8; ``image``: (H, W) uint8 keyframe at the working resolution, or
     ``None`` when not stored; ``descriptor``: (D,) float32 whole-image descriptor or ``None``;
+    ``image_data``: the keyframe image already encoded as the map stores it (JPEG/PNG bytes: a build
+    keeps these rather than pixels, 5-10x less memory) or ``None``;
     ``pose_gt``: ground-truth pose, used only for plots and scoring — never by localization or
     navigation.
     """
@@ -57,6 +59,7 @@ class Node:
     image: np.ndarray | None = None
     descriptor: np.ndarray | None = None
     pose_gt: tuple[float, ...] | None = None
+    image_data: bytes | None = None
 
 
 @dataclass(frozen=True)

@@ -578,6 +578,11 @@ class ImageSequence:
         return len(self._paths) if self._paths is not None else self._video_frames
 
     @property
+    def paths(self) -> list[Path] | None:
+        """The image files in order (``None`` for videos, whose frames only exist by decoding)."""
+        return list(self._paths) if self._paths is not None else None
+
+    @property
     def names(self) -> list[str] | None:
         """File names in order (``None`` for videos, whose length is only known by reading)."""
         return [display_name(p.name) for p in self._paths] if self._paths is not None else None

@@ -54,6 +54,14 @@ def _kmeans(x: np.ndarray, k: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     return centres.astype(np.float32), labels.ravel().astype(np.int64)
 
 
+def _kmeans_job(item: tuple[np.ndarray, int, int, bool]) -> tuple[np.ndarray, np.ndarray]:
+    """One cluster's split (a task of :meth:`Vocabulary.train`): ``(rows, k, seed, binary)``, rows
+    packed bits when ``binary``."""
+    rows, k, seed, binary = item
+    x = np.unpackbits(np.ascontiguousarray(rows, np.uint8), axis=1).astype(np.float32) if binary else rows
+    return _kmeans(x, k, seed)
+
+
 @dataclass(frozen=True)
 class Vocabulary:
     """A vocabulary tree.
@@ -83,8 +91,10 @@ class Vocabulary:
     # ------------------------------------------------------------------ training
     @classmethod
     def train(cls, descriptors: np.ndarray, kind: str, words: int = 4096, seed: int = 0,
-              max_samples: int = 200_000) -> Vocabulary:
-        """Tree with about ``words`` leaves from (N, D) descriptors (subsampled to ``max_samples``)."""
+              max_samples: int = 200_000, mapper=None) -> Vocabulary:
+        """Tree with about ``words`` leaves from (N, D) descriptors (subsampled to ``max_samples``);
+        ``mapper(fn, items)``: an ordered parallel map (``Executor.map``) for the independent
+        k-means runs of each level's clusters — the same tree with any mapper."""
         det = detector(kind)
         n = len(descriptors)
         if n < 2:
@@ -109,12 +119,19 @@ class Vocabulary:
         centres, children = [], []
         for level in range(depth):
             level_centres, level_groups, kids = [], [], []
+            jobs = [(g, rows) for g, rows in enumerate(groups) if 2 <= min(k, len(rows)) < len(rows)]
+            if mapper is not None and len(jobs) > 1:  # packed descriptors travel, 8x less than bits
+                items = [(descriptors[rows] if det.binary else bits[rows], min(k, len(rows)), seed + 7919 * level + g, det.binary)
+                         for g, rows in jobs]
+                split = dict(zip((g for g, _ in jobs), mapper(_kmeans_job, items)))
+            else:
+                split = {g: _kmeans(bits[rows], min(k, len(rows)), seed + 7919 * level + g) for g, rows in jobs}
             for g, rows in enumerate(groups):
                 m = len(rows)
                 kk = min(k, m)
                 first = len(level_centres)
-                if kk >= 2 and m > kk:
-                    c, lab = _kmeans(bits[rows], kk, seed + 7919 * level + g)
+                if g in split:
+                    c, lab = split[g]
                     for j in range(kk):
                         sub = rows[lab == j]
                         if len(sub) == 0:
@@ -337,15 +354,30 @@ class BowIndex:
         fresh = self._from_word_lists(self.vocabulary, np.concatenate([self.node_ids, ids]), self._word_lists() + new, per_feature)
         self.__dict__.update(fresh.__dict__)
 
+    #: Postings handled at once when weighting a very large index (bounds the float64 temporaries).
+    REWEIGHT_CHUNK = 1 << 26
+
     def _reweight(self) -> None:
         n = len(self.node_ids)
-        self.df = np.diff(self.indptr).astype(np.float32)
+        lengths = np.diff(self.indptr)
+        self.df = lengths.astype(np.float32)
         self.idf = np.log((n + 1.0) / (self.df + 1.0)).astype(np.float32)
-        words = np.repeat(np.arange(self.vocabulary.size), np.diff(self.indptr))
-        w = self.counts * self.idf[words]
-        self.norms = np.sqrt(np.bincount(self.rows, weights=w * w, minlength=n)).astype(np.float32)
+        # per posting: its word's idf times its count (float32, like the counts), then the unit vectors
+        w = np.repeat(self.idf, lengths)
+        w *= self.counts
+        chunk = self.REWEIGHT_CHUNK
+        if len(w) <= chunk:  # one pass (every real map): the sums in posting order
+            norms = np.bincount(self.rows, weights=w * w, minlength=n)
+        else:  # a million nodes: the same sums, chunk by chunk, without 8-byte-per-posting temporaries
+            norms = np.zeros(n, np.float64)
+            for s in range(0, len(w), chunk):
+                part = w[s : s + chunk]
+                norms += np.bincount(self.rows[s : s + chunk], weights=part * part, minlength=n)
+        self.norms = np.sqrt(norms).astype(np.float32)
         self.norms[self.norms == 0] = 1.0
-        self._weights = (w / self.norms[self.rows]).astype(np.float32)  # posting weights of unit vectors
+        for s in range(0, len(w), chunk):
+            w[s : s + chunk] /= self.norms[self.rows[s : s + chunk]]
+        self._weights = w  # posting weights of unit vectors, float32
         # the same postings as a (V, N) CSR matrix sharing the arrays (int32 row pointers when they fit)
         indptr = self.indptr.astype(np.int32) if len(self.rows) < 2**31 else self.indptr
         self._matrix = sp.csr_matrix((self._weights, self.rows, indptr), shape=(self.vocabulary.size, n), copy=False)

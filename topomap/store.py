@@ -29,7 +29,7 @@ and the ``revision`` / ``row_counts`` header keys.
 under that key in ``meta`` and read back into ``meta``) or ``TopoMap.arrays[name]`` (named numeric
 arrays, stored raw in ``array``), never into new tables or columns. Arrays are raw little-endian
 bytes with their dtype and shape in columns, read back with ``np.frombuffer``; images are PNG or
-JPEG and pass :func:`topomap.images.decode_image`.
+JPEG (``BuildConfig.image_format``) and pass :func:`topomap.images.decode_image`.
 """
 
 from __future__ import annotations
@@ -78,6 +78,7 @@ __all__ = [
     "upgrade_map",
     "map_schema_version",
     "load_node_image",
+    "encode_image",
     "check_writable",
     "export_json",
     "export_graphml",
@@ -374,11 +375,25 @@ def _unpack(data: bytes | None, dtype: str, shape: str, what: str, *, dtypes: It
     return np.frombuffer(data, dtype=dt).reshape(shp).copy()
 
 
-def _png(img: np.ndarray) -> bytes:
-    ok, buf = cv2.imencode(".png", img)
+def encode_image(img: np.ndarray, fmt: str = "png", quality: int = 90) -> bytes:
+    """A ``(H, W) uint8`` image as the bytes the map stores: ``png`` or ``jpeg`` (``quality`` 1..100)."""
+    if fmt == "jpeg":
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    else:
+        ok, buf = cv2.imencode(".png", img)
     if not ok:  # pragma: no cover - OpenCV encodes any uint8 array
-        raise TopomapError("could not encode an image as PNG")
+        raise TopomapError(f"could not encode an image as {fmt.upper()}")
     return buf.tobytes()
+
+
+def _node_images(n: Node, cfg: BuildConfig) -> tuple[bytes, bytes | None]:
+    """The thumbnail and keyframe image bytes of a node in the map's format (the keyframe image as
+    the build encoded it, if it did)."""
+    thumb = encode_image(n.thumbnail, cfg.image_format, cfg.thumbnail_quality)
+    image = getattr(n, "image_data", None)
+    if image is None and n.image is not None:
+        image = encode_image(n.image, cfg.image_format, cfg.image_quality)
+    return thumb, image
 
 
 def _decode_blob(data: bytes, what: str, *, exact: tuple[int, int] | None = None,
@@ -846,14 +861,14 @@ def _clean_json(v):
     return v
 
 
-def _node_rows(nodes: Iterable[Node]) -> Iterator[tuple]:
+def _node_rows(nodes: Iterable[Node], cfg: BuildConfig) -> Iterator[tuple]:
     for n in nodes:
         if n.descriptor is not None:
             d_blob, d_dt, d_shape = _pack(n.descriptor)
         else:
             d_blob = d_dt = d_shape = None
         yield (n.id, n.sequence, n.frame_id, n.source, n.features.image_size[0], n.features.image_size[1],
-               _png(n.thumbnail), _png(n.image) if n.image is not None else None,
+               *_node_images(n, cfg),
                d_blob, d_dt, d_shape, json.dumps([float(v) for v in n.pose_gt]) if n.pose_gt is not None else None)
 
 
@@ -906,7 +921,7 @@ def _write_new(m: TopoMap, target: Path) -> None:
         con.execute("BEGIN")
         try:
             nodes = sorted(m.nodes.values(), key=lambda n: n.id)
-            _insert(con, "node", _node_rows(nodes))
+            _insert(con, "node", _node_rows(nodes, m.config))
             _insert(con, "feature", _feature_rows(nodes))
             _insert(con, "edge", _edge_rows(sorted(m.edges.values(), key=lambda e: e.key)))
             _insert(con, "frame", _frame_rows(m.frames))
@@ -971,7 +986,7 @@ class MapUpdate:
             raise TopomapError("the map's existing frames were changed; updates only add frames")
         new_nodes = [n for i, n in sorted(m.nodes.items()) if i not in self._node_ids]
         try:
-            _insert(con, "node", _node_rows(new_nodes))
+            _insert(con, "node", _node_rows(new_nodes, m.config))
             _insert(con, "feature", _feature_rows(new_nodes))
             _insert(con, "frame", _frame_rows(m.frames[self._frames :]))
             _insert(con, "edge", _edge_rows(sorted(m.edges.values(), key=lambda e: e.key)), replace=True)
