@@ -358,6 +358,11 @@ class BagSequence(ImageSequence):
         return None
 
     # -- the sequence
+    @property
+    def paths(self) -> None:
+        """A bag's frames are messages, not files: they only exist by decoding (read in order)."""
+        return None
+
     def __len__(self) -> int:
         return (self._count + self.every - 1) // self.every
 
