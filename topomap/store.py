@@ -218,6 +218,7 @@ def _meta_rows(m: TopoMap) -> dict[str, object]:
         "feature_kind": m.feature_kind,
         "sequences": m.sequences,
         "descriptor": m.meta.get("descriptor"),
+        **({"teach_world": m.meta["teach_world"]} if m.meta.get("teach_world") is not None else {}),
     }
 
 
@@ -345,6 +346,8 @@ def _read(con: sqlite3.Connection, path: Path, images: bool) -> TopoMap:
     m = TopoMap(camera=camera, config=config, sequences=list(meta.get("sequences") or []))
     m.meta = {"created_utc": meta.get("created_utc"), "topomap_version": meta.get("topomap_version"),
               "schema_version": SCHEMA_VERSION, "descriptor": meta.get("descriptor")}
+    if meta.get("teach_world") is not None:  # the simulator world of the teach run (topomap.build)
+        m.meta["teach_world"] = meta["teach_world"]
     feats = {}
     for node_id, fkind, count, kp, kp_dt, de, de_dt, de_shape in con.execute(
         "SELECT node_id, kind, count, keypoints, kp_dtype, descriptors, desc_dtype, desc_shape FROM feature"
