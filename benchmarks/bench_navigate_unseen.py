@@ -294,6 +294,10 @@ def print_table(summary: dict, title: str, wall_s: float | None = None) -> None:
           + (f"; total wall time {wall_s / 60:.1f} min)" if wall_s is not None else ")"))
 
 
+def _job_key(job: dict) -> str:
+    return json.dumps(job, sort_keys=True)
+
+
 def read_log(path: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
@@ -327,6 +331,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="write every episode and the summary here")
     ap.add_argument("--log", type=Path, default=None, help="append each finished row here (JSON lines)")
     ap.add_argument("--summarize", type=Path, default=None, help="only print the summary of this log")
+    ap.add_argument("--resume", action="store_true", help="keep the rows already in --log and run only the missing ones")
     ap.add_argument("--allow-tuning-worlds", action="store_true", help="allow seeds below 100 (then not a held-out figure)")
     args = ap.parse_args(argv)
     if args.summarize is not None:
@@ -351,7 +356,9 @@ def main(argv: list[str] | None = None) -> int:
     cache = args.cache or Path(tempfile.mkdtemp(prefix="bench_unseen_"))
     cache.mkdir(parents=True, exist_ok=True)
     log = args.log or (args.json.with_suffix(".jsonl") if args.json else cache / "run.jsonl")
-    log.write_text("")
+    done = read_log(log) if args.resume and log.is_file() else []
+    if not args.resume:
+        log.write_text("")
 
     t0 = time.perf_counter()
     specs = [world_spec(s, k, args.style) for k, s in enumerate(seeds)]
@@ -375,8 +382,11 @@ def main(argv: list[str] | None = None) -> int:
                     if k < len(eps):
                         jobs += [{"map": str(path), "episode": eps[k], "method": m, "disturbance": args.disturbance,
                                   "budget_per_hop": args.budget_per_hop, "conditions": args.conditions} for m in group]
-        rows = []
-        futures = [pool.submit(run_one, job) for job in jobs]
+        keys = {_job_key(r["job"]) for r in done}
+        rows = list(done)
+        futures = [pool.submit(run_one, job) for job in jobs if _job_key(job) not in keys]
+        if done:
+            print(f"resuming: {len(done)} rows in {log}, {len(futures)} to run", flush=True)
         with log.open("a") as f:
             for fut in as_completed(futures):
                 row = fut.result()
