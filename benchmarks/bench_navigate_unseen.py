@@ -371,17 +371,17 @@ def main(argv: list[str] | None = None) -> int:
               f"maps ready in {time.perf_counter() - t0:.0f} s ({cache})", flush=True)
         drawn = draw(maps, specs, args.episodes, args.seed, args.start_offset, args.max_hops)
         jobs: list[dict] = []
-        # topomap and blind replay of every episode first, worlds interleaved; the slow uncompensated
-        # runs last: a run cut short still has topomap on every world
-        order = [m for m in methods if m != "uncompensated"] + [m for m in methods if m == "uncompensated"]
-        for g, group in enumerate(([m for m in order if m != "uncompensated"], [m for m in order if m == "uncompensated"])):
-            for k in range(max(len(d) for d in drawn)):
-                for w, (path, eps) in enumerate(zip(maps, drawn)):
-                    if g == 1 and (k * len(maps) + w) % max(1, args.baseline_every):
+        # episodes in order, worlds interleaved, each by every method (the uncompensated servo on
+        # every --baseline-every-th only): a run cut short is still paired and covers every world
+        for k in range(max(len(d) for d in drawn)):
+            for w, (path, eps) in enumerate(zip(maps, drawn)):
+                if k >= len(eps):
+                    continue
+                for m in methods:
+                    if m == "uncompensated" and (k * len(maps) + w) % max(1, args.baseline_every):
                         continue
-                    if k < len(eps):
-                        jobs += [{"map": str(path), "episode": eps[k], "method": m, "disturbance": args.disturbance,
-                                  "budget_per_hop": args.budget_per_hop, "conditions": args.conditions} for m in group]
+                    jobs.append({"map": str(path), "episode": eps[k], "method": m, "disturbance": args.disturbance,
+                                 "budget_per_hop": args.budget_per_hop, "conditions": args.conditions})
         keys = {_job_key(r["job"]) for r in done}
         rows = list(done)
         futures = [pool.submit(run_one, job) for job in jobs if _job_key(job) not in keys]

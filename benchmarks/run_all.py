@@ -2,7 +2,7 @@
 
 Each benchmark prints its own table with a ratio against a baseline measured in the same run (these
 machines are noisy). ``--quick`` shrinks the long ones (scale: 1k and 10k nodes; navigation: 8
-episodes) for a smoke run; the figures quoted in the docs come from the full run.
+episodes; held-out navigation: 4) for a smoke run; the figures quoted in the docs come from the full run.
 """
 
 from __future__ import annotations
@@ -25,6 +25,9 @@ BENCHMARKS = {
     "observability": ([], []),
     "navigate": (["--episodes", "40", "--worlds", "0,1"],
                  ["--episodes", "8", "--worlds", "0,1", "--max-hops", "10"]),
+    # held-out worlds and photographs (docs/navigation.md); hours on 2 shared cores in full
+    "navigate_unseen": (["--episodes", "100", "--worlds", "100-109"],
+                        ["--episodes", "4", "--worlds", "100,101", "--max-hops", "6", "--methods", "topomap,blind replay"]),
 }
 
 
