@@ -145,35 +145,54 @@ def run_one(job: dict) -> dict:
     from topomap.navigate import EventKind
     from topomap.sim.episode import goal_pose, replay_episode, run_episode
 
+    from topomap.sim import simulator
+
     ep = job["episode"]
     m, world, poses, commands, loc = bench._load(job["map"])
     events: list[dict] = []
+    sims: list = []  # the episode's simulator: its ground truth scores each localization (never fed back)
+    enter = simulator.Simulator.__enter__
+
+    def capture(self):
+        sims.append(self)
+        return enter(self)
 
     def on_event(ev) -> None:
-        if ev.kind is not EventKind.STEP:
-            events.append({"t": round(ev.time_s, 2), "kind": ev.kind.value, "message": ev.message,
-                           "node": ev.subgoal, "hops": max(0, len(ev.route) - 1) if ev.route else None})
+        if ev.kind is EventKind.STEP:
+            return
+        e = {"t": round(ev.time_s, 2), "kind": ev.kind.value, "message": ev.message,
+             "node": ev.subgoal, "hops": max(0, len(ev.route) - 1) if ev.route else None}
+        if ev.kind is EventKind.LOCALIZED and sims and ev.subgoal is not None:
+            x, z, th = sims[-1].ground_truth.pose()
+            lx, lz, lth = goal_pose(m, poses, ev.subgoal)
+            e["error_m"] = round(math.hypot(lx - x, lz - z), 3)
+            e["error_deg"] = round(abs(math.degrees(math.remainder(lth - th, 2 * math.pi))), 1)
+        events.append(e)
 
+    simulator.Simulator.__enter__ = capture
     t0 = time.perf_counter()
-    if job["method"] == "blind replay":
-        r = replay_episode(m, world, ep["goal"], poses, commands, ep["start_node"], vehicle=ep["vehicle"],
-                           disturbance=job["disturbance"], seed=ep["seed"])
-    else:
-        servo = servo_preset("default" if job["method"] == "topomap" else "uncompensated")
-        r = run_episode(m, world, ep["goal"], poses, start_pose=tuple(ep["start_pose"]), vehicle=ep["vehicle"],
-                        disturbance=job["disturbance"], seed=ep["seed"], servo_config=servo, localizer=loc,
-                        navigate_config=NavigateConfig(time_budget_s_per_hop=job["budget_per_hop"]),
-                        on_event=on_event, conditions=job["conditions"])
+    try:
+        if job["method"] == "blind replay":
+            r = replay_episode(m, world, ep["goal"], poses, commands, ep["start_node"], vehicle=ep["vehicle"],
+                               disturbance=job["disturbance"], seed=ep["seed"])
+        else:
+            servo = servo_preset("default" if job["method"] == "topomap" else "uncompensated")
+            r = run_episode(m, world, ep["goal"], poses, start_pose=tuple(ep["start_pose"]), vehicle=ep["vehicle"],
+                            disturbance=job["disturbance"], seed=ep["seed"], servo_config=servo, localizer=loc,
+                            navigate_config=NavigateConfig(time_budget_s_per_hop=job["budget_per_hop"]),
+                            on_event=on_event, conditions=job["conditions"])
+    finally:
+        simulator.Simulator.__enter__ = enter
     row = {"world": ep["world"], "episode": ep["index"], "vehicle": ep["vehicle"], "method": job["method"],
            "start_node": ep["start_node"], "goal": ep["goal"], **r.to_dict(),
            "wall_s": round(time.perf_counter() - t0, 2), "events": events, "job": job}
     if job["method"] != "blind replay":
-        loc_ev = next((e for e in events if e["kind"] == "localized"), None)
-        if loc_ev is not None:
-            lx, lz, lth = goal_pose(m, poses, loc_ev["node"])
-            sx, sz, sth = ep["start_pose"]
-            row["start_localization_error_m"] = round(math.hypot(lx - sx, lz - sz), 3)
-            row["start_localization_error_deg"] = round(abs(math.degrees(math.remainder(lth - sth, 2 * math.pi))), 1)
+        located = [e for e in events if e["kind"] == "localized" and "error_m" in e]
+        if located:  # where the robot truly was when it localized (it may have turned to scan)
+            row["start_localization_error_m"] = located[0]["error_m"]
+            row["start_localization_error_deg"] = located[0]["error_deg"]
+        row["wrong_relocalizations"] = sum(e["error_m"] > WRONG_START_M or e["error_deg"] > WRONG_START_DEG
+                                           for e in located[1:])
         row["budget_s"] = round(_budget(events, job["budget_per_hop"]), 1)
     row["kind"], row["terminal_kind"] = failure_kind(row)
     return row
@@ -267,6 +286,9 @@ def summarize(rows: list[dict]) -> dict:
         early = [r for r in rows if r["method"] == "topomap" and r["status"] == "failed" and "gave up" in r.get("message", "")
                  and r.get("budget_s") and (r["budget_s"] - r["duration_s"]) > 0.25 * r["budget_s"]]
         out["topomap"]["gave_up_with_quarter_budget_left"] = len(early)
+        failed = [r for r in rows if r["method"] == "topomap" and not r["success"] and "wrong_relocalizations" in r]
+        if any("wrong_relocalizations" in r for r in rows):  # logs of before this count lack it
+            out["topomap"]["failures_with_a_wrong_relocalization"] = sum(r["wrong_relocalizations"] > 0 for r in failed)
     return out
 
 
@@ -290,6 +312,9 @@ def print_table(summary: dict, title: str, wall_s: float | None = None) -> None:
     if "topomap" in summary:
         print(f"topomap episodes that gave up with more than a quarter of their time budget left: "
               f"{summary['topomap']['gave_up_with_quarter_budget_left']}")
+        if "failures_with_a_wrong_relocalization" in summary["topomap"]:
+            print(f"topomap failures with a wrong re-localization (> {WRONG_START_M} m or {WRONG_START_DEG:.0f} deg "
+                  f"from the truth): {summary['topomap']['failures_with_a_wrong_relocalization']}")
     print("(ratio: the method's median position error / topomap's"
           + (f"; total wall time {wall_s / 60:.1f} min)" if wall_s is not None else ")"))
 
