@@ -84,7 +84,14 @@ def main(argv: list[str] | None = None) -> int:
 
     def on_event(ev) -> None:
         if ev.kind is not EventKind.STEP:
-            print(f"{ev.time_s:7.1f} s  {ev.kind.value:<10} {ev.message}")
+            truth = ""
+            if ev.kind is EventKind.LOCALIZED and sims:  # where the robot truly was, and the nearest keyframe
+                x, z, th = (float(v) for v in sims[-1]._vehicle.pose)
+                lx, lz, lth = goal_pose(m, poses, ev.subgoal)
+                near = min(m.nodes, key=lambda n: math.dist(goal_pose(m, poses, n)[:2], (x, z)))
+                truth = (f"  | truly {math.hypot(lx - x, lz - z):.2f} m and "
+                         f"{abs(math.degrees(math.remainder(lth - th, 2 * math.pi))):.0f} deg from it; nearest node {near}")
+            print(f"{ev.time_s:7.1f} s  {ev.kind.value:<10} {ev.message}{truth}")
             return
         if ev.subgoal != ep.goal or ev.time_s - last[0] < args.every - 1e-9:
             return
