@@ -44,6 +44,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=None, help="teach runs and maps (bench_navigate.py --cache)")
     ap.add_argument("--run", type=Path, default=None,
                     help="a bench_navigate_unseen.py log (.jsonl) or --json file: replay its episode as recorded")
+    ap.add_argument("--conditions", default=None,
+                    help="repeat-run conditions instead of the recorded ones (e.g. none: the same episode as taught)")
     args = ap.parse_args(argv)
 
     from topomap.config import NavigateConfig, servo_preset
@@ -54,6 +56,8 @@ def main(argv: list[str] | None = None) -> int:
     conditions = None
     if args.run is not None:
         ep, map_path, conditions, args.disturbance, args.budget_per_hop = _from_run(ap, args)
+    if args.conditions is not None:
+        conditions = args.conditions
     else:
         seeds = [int(s) for s in args.worlds.split(",")]
         if args.world not in seeds:
