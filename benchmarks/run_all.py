@@ -2,7 +2,8 @@
 
 Each benchmark prints its own table with a ratio against a baseline measured in the same run (these
 machines are noisy). ``--quick`` shrinks the long ones (scale: 1k and 10k nodes; build scale: 1k
-frames and a 100k-node index; navigation: 8 episodes) for a smoke run; the figures quoted in the docs come from the full run.
+frames and a 100k-node index; navigation: 8 episodes; held-out navigation: 4) for a smoke run; the
+figures quoted in the docs come from the full run.
 """
 
 from __future__ import annotations
@@ -27,6 +28,9 @@ BENCHMARKS = {
     "navigate": (["--episodes", "40", "--worlds", "0,1"],
                  ["--episodes", "8", "--worlds", "0,1", "--max-hops", "10"]),
     "fuzz": ([], ["--quick"]),
+    # held-out worlds and photographs (docs/navigation.md); hours on 2 shared cores in full
+    "navigate_unseen": (["--episodes", "100", "--worlds", "100-109"],
+                        ["--episodes", "4", "--worlds", "100,101", "--max-hops", "6", "--methods", "topomap,blind replay"]),
 }
 
 

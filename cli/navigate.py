@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from topomap.errors import DatasetError
+from topomap.errors import DatasetError, TopomapError
 from topomap_cli.app import app, console, err_console, fail, print_json
 
 _RESULT_KEYS = ("success", "final_position_error_m", "final_heading_error_deg", "path_length_m",
@@ -67,7 +67,9 @@ def navigate(
     goal: Optional[int] = typer.Option(None, "--goal", help="Goal node id."),
     start_node: Optional[int] = typer.Option(None, "--start-node", help="Start at this node's keyframe pose (and tell the navigator)."),
     start_pose: Optional[str] = typer.Option(None, "--start-pose", help="Start pose x,z,theta [m, m, rad]; the navigator localizes itself."),
-    world: Optional[str] = typer.Option(None, "--world", help="World: 'default', a seed or a world JSON [default: world.json of the map's teach run]."),
+    world: Optional[str] = typer.Option(None, "--world", help="World: 'default', a seed, 'office[:SEED]' or a world JSON [default: the map's teach world]."),
+    textures: Optional[Path] = typer.Option(None, "--textures", help="Folder of photographs for the walls (as `topomap sim teach --textures`)."),
+    conditions: Optional[str] = typer.Option(None, "--conditions", help="Repeat-run conditions: none, lighting, evening, moved, noisy-camera and/or key=value,... [default: as taught]."),
     poses: Optional[Path] = typer.Option(None, "--poses", help="Teach poses CSV, for scoring only [default: poses.csv of the map's teach run]."),
     vehicle: str = typer.Option("unicycle", "--vehicle", help="unicycle or omni."),
     disturbance: Optional[str] = typer.Option(None, "--disturbance", help="Unknown input disturbance: none, bias, sinusoidal, slip, noisy, harsh, and/or key=value,... [default: none; demo: bias]."),
@@ -89,18 +91,22 @@ def navigate(
     if start_node is not None and start_pose is not None:
         fail("give either --start-node or --start-pose, not both")
     if map_path is None:
-        if any(v is not None for v in (goal, start_node, start_pose, world, poses, record)):
-            fail("--goal, --start-*, --world, --poses and --record need a MAP (without MAP the demo chooses them)")
+        if any(v is not None for v in (goal, start_node, start_pose, world, poses, record, textures, conditions)):
+            fail("--goal, --start-*, --world, --textures, --conditions, --poses and --record need a MAP "
+                 "(without MAP the demo chooses them)")
         _demo(out, vehicle, disturbance, seed, as_json, rerun, rerun_spawn)
         return
     if goal is None:
         fail("give the goal node with --goal N (see `topomap info MAP` for the node ids)")
     parse_disturbance(disturbance or "none")
+    from topomap.sim.conditions import parse_conditions
+
+    if conditions is not None:
+        parse_conditions(conditions)
 
     from topomap.groundtruth import read_poses
     from topomap.sim.demo import EpisodeRecorder
     from topomap.sim.episode import goal_pose, run_episode
-    from topomap.sim.world import resolve_world
     from topomap.store import load_map
 
     _check_rerun(rerun)
@@ -111,15 +117,11 @@ def navigate(
 
         Planner(m).route(start_node, goal)  # no path between them: a clear error before the robot moves
     teach_dir = Path(m.sequences[0]["source"]) if m.sequences else None
-    if world is None:
-        if teach_dir is None or not (teach_dir / "world.json").is_file():
-            raise DatasetError(f"no world.json beside the map's images ({teach_dir}); give --world SEED|FILE")
-        world = str(teach_dir / "world.json")
+    w, taught_conditions = _teach_world(m, world, textures, teach_dir)
     if poses is None:
         if teach_dir is None or not (teach_dir / "poses.csv").is_file():
             raise DatasetError(f"no poses.csv beside the map's images ({teach_dir}); give --poses CSV")
         poses = teach_dir / "poses.csv"
-    w = resolve_world(world)
     pose_table = read_poses(poses)
     goal_pose(m, pose_table, goal)  # the scorer needs the goal's teach pose
     if record is not None:
@@ -142,12 +144,37 @@ def navigate(
 
     result = run_episode(m, w, goal, pose_table, start_pose=pose, start_node=start_node, vehicle=vehicle,
                          disturbance=disturbance or "none", seed=seed, servo_config=servo_cfg, on_event=listen,
-                         on_truth=viewer.log_truth if viewer is not None else None)
+                         on_truth=viewer.log_truth if viewer is not None else None,
+                         conditions=conditions if conditions is not None else taught_conditions)
     data = _shown(result)
     files = rec.write_all(record, w, pose_table, result, data=data) if rec is not None else {}
     if viewer is not None and viewer.close() is not None:
         files["rerun"] = rerun
     _report(data, as_json, files)
+
+
+def _teach_world(m, world: str | None, textures: Path | None, teach_dir: Path | None):
+    """The world to drive in and the teach run's conditions: ``--world`` (with ``--textures``, as
+    ``sim teach``), else the world the map remembers (meta ``teach_world``), else world.json beside
+    the map's teach images (maps built before the key existed)."""
+    from topomap.build import TEACH_WORLD_KEY
+    from topomap.sim.conditions import parse_conditions
+    from topomap.sim.world import World, resolve_world
+
+    taught = m.meta.get(TEACH_WORLD_KEY) or {}
+    try:
+        taught_conditions = parse_conditions(taught.get("conditions"))
+    except TopomapError as e:
+        raise DatasetError(f"the map's teach world has unreadable conditions ({e}); give --conditions") from None
+    if world is not None:
+        return resolve_world(world, textures=textures), taught_conditions
+    if taught.get("world") is not None:
+        w = World.from_dict(taught["world"], source="the map's teach world")
+        return (w if textures is None else w.retextured(textures)), taught_conditions
+    if teach_dir is None or not (teach_dir / "world.json").is_file():
+        raise DatasetError(f"the map does not remember its teach world and there is no world.json beside its images "
+                           f"({teach_dir}); give --world SEED|FILE")
+    return resolve_world(str(teach_dir / "world.json"), textures=textures), taught_conditions
 
 
 def _check_rerun(path: Path | None) -> None:

@@ -17,7 +17,8 @@ sim_app = typer.Typer(
 )
 app.add_typer(sim_app, name="sim")
 
-_WORLD_HELP = "World: 'default', a seed (integer) or a world JSON file."
+_WORLD_HELP = "World: 'default', a seed (integer), 'office[:SEED]' (plain office walls) or a world JSON file."
+_CONDITIONS_HELP = "How the run looks: none, lighting, evening, moved, noisy-camera and/or key=value,... (topomap.sim.conditions)."
 _TEXTURES_HELP = "Folder of your own photographs (.jpg/.png) for the walls."
 
 
@@ -63,6 +64,7 @@ def teach_cmd(
     spacing: float = typer.Option(0.25, "--spacing", help="Metres of travel between images."),
     size: str = typer.Option("320x240", "--size", help="Image size WIDTHxHEIGHT (60 degree horizontal field of view)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the disturbance's random walk."),
+    conditions: str = typer.Option("none", "--conditions", help=_CONDITIONS_HELP),
     force: bool = typer.Option(False, "--force", help="Overwrite a previous teach run in the output folder."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
 ) -> None:
@@ -76,6 +78,9 @@ def teach_cmd(
 
     vehicle_kind(vehicle)  # fail early on a bad choice
     parse_disturbance(disturbance)
+    from topomap.sim.conditions import parse_conditions
+
+    parse_conditions(conditions)
     w, h = _size(size)
     cfg = TeachConfig(spacing_m=spacing)
     wld = _world(world, textures)
@@ -85,7 +90,7 @@ def teach_cmd(
         task = progress.add_task(route, total=1.0, frames=0)
         res = teach(
             wld, route, out, config=cfg, vehicle=vehicle, disturbance=disturbance, camera=default_camera(w, h),
-            seed=seed, overwrite=force,
+            seed=seed, overwrite=force, conditions=conditions,
             on_progress=lambda n, f: progress.update(task, completed=f, frames=n),
         )
     summary = {
@@ -164,6 +169,8 @@ def render_cmd(
     pose: Optional[str] = typer.Option(None, "--pose", help="x,z,theta [m, m, deg]; default: the start of the loop route."),
     size: str = typer.Option("320x240", "--size", help="Image size WIDTHxHEIGHT."),
     textures: Optional[Path] = typer.Option(None, "--textures", help=_TEXTURES_HELP),
+    conditions: str = typer.Option("none", "--conditions", help=_CONDITIONS_HELP),
+    seed: int = typer.Option(0, "--seed", help="Seed of the camera noise (with --conditions)."),
 ) -> None:
     """Render the camera image at one pose (handy to look at a world)."""
     import cv2
@@ -181,7 +188,7 @@ def render_cmd(
             fail(f"--pose {pose!r} must be x,z,theta with theta in degrees, like 12.5,8,90")
         start = Pose(x, z, math.radians(th))
     w, h = _size(size)
-    with Simulator(wld, camera=default_camera(w, h), start_pose=start) as sim:
+    with Simulator(wld, camera=default_camera(w, h), start_pose=start, conditions=conditions, seed=seed) as sim:
         img = sim.robot.render()
     if not cv2.imwrite(str(out), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):
         fail(f"cannot write image {out}; use a .png path in a writable folder")

@@ -49,7 +49,7 @@ from topomap.parallel import Executor, InlineExecutor
 from topomap.retrieval import BowIndex, Vocabulary, thumbnail_descriptor, vocabulary_size
 
 __all__ = ["BuildProgress", "FrameTask", "PreparedFrame", "build_map", "build_index", "prepare_frame",
-           "descriptor_size", "make_thumbnail"]
+           "descriptor_size", "make_thumbnail", "teach_world_record", "TEACH_WORLD_KEY"]
 
 log = logging.getLogger(__name__)
 
@@ -411,6 +411,11 @@ def build_map(
         raise DatasetError(f"no usable image in {seq.source} ({reasons})")
 
     tmap.meta["descriptor"] = {"kind": "thumbnail", "size": list(descriptor_size(*work_size)), "patch": DESCRIPTOR_PATCH}
+    if (taught := teach_world_record(seq.source)) is not None:
+        if TEACH_WORLD_KEY not in tmap.meta:
+            tmap.meta[TEACH_WORLD_KEY] = taught
+        elif tmap.meta[TEACH_WORLD_KEY].get("world") != taught["world"]:
+            log.warning("%s was taught in another world than the map's first run; the map keeps the first", seq.source)
     new_ids = [n for n in sorted(tmap.nodes) if n >= first_node]
     build_index(tmap, on_progress, executor=executor)
     loops = _close_loops(tmap, new_ids, config, on_progress, executor=executor)
@@ -443,6 +448,39 @@ def _skipped_frame(frame) -> PreparedFrame:
     h, w = frame.image.shape
     reason = f"{w}x{h} px is too small; images need at least {MIN_IMAGE_PX} px on each side"
     return PreparedFrame(frame.index, frame.name, "too small", reason, input_size=(w, h))
+
+
+#: Meta key of the world a simulator teach run was recorded in (see :func:`teach_world_record`).
+TEACH_WORLD_KEY = "teach_world"
+_TEACH_FILE_MAX_BYTES = 20_000_000  # a world file is tens of kB; refuse to read anything huge
+
+
+def teach_world_record(source) -> dict | None:
+    """What a simulator teach folder says about its world, for the map's ``teach_world`` meta key:
+    ``{"world": <world.json>, "source": folder, "route", "vehicle", "conditions"}`` (the last three
+    from ``teach.json``, None when absent). None when ``source`` is not such a folder; a damaged
+    world.json is logged and skipped: the map builds from the images alone."""
+    import json
+
+    folder = Path(str(source))
+    path = folder / "world.json"
+    if not folder.is_dir() or not path.is_file():
+        return None
+    try:
+        if path.stat().st_size > _TEACH_FILE_MAX_BYTES:
+            raise ValueError(f"larger than {_TEACH_FILE_MAX_BYTES // 1_000_000} MB")
+        world = json.loads(path.read_text())
+        if not isinstance(world, dict) or world.get("format") != "topomap-world":
+            raise ValueError("not a topomap world file")
+        run = folder / "teach.json"
+        teach = json.loads(run.read_text()) if run.is_file() and run.stat().st_size < _TEACH_FILE_MAX_BYTES else {}
+        if not isinstance(teach, dict):
+            teach = {}
+    except (OSError, UnicodeDecodeError, ValueError) as e:  # JSONDecodeError is a ValueError
+        log.warning("not recording the teach world of %s: %s is unreadable (%s)", folder, path.name, e)
+        return None
+    return {"world": world, "source": str(folder.resolve()), "route": teach.get("route"),
+            "vehicle": teach.get("vehicle"), "conditions": teach.get("conditions")}
 
 
 def _report(cb, stage: str, done: int, total: int, m: TopoMap) -> None:

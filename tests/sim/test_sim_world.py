@@ -246,3 +246,41 @@ def test_negative_seeds_are_refused():
         generate_world(-1)
     with pytest.raises(DatasetError, match="from 0 to 2"):
         resolve_world("-3")
+
+
+# ---------------------------------------------------------------------- office style
+def test_existing_procedural_textures_keep_their_pixels():
+    # the office kinds were added with their own random streams: worlds made before keep their look
+    import hashlib
+
+    got = [hashlib.sha1(tx.texture_image(f"proc:{k}:5").tobytes()).hexdigest()[:10]
+           for k in ("board", "bricks", "ceiling", "panels", "poster", "tiles")]
+    assert got == ["05e6fbc8b6", "1825afc615", "9369d721bc", "3ff1840c91", "681f5473ef", "abdd585d53"]
+
+
+def test_office_world_is_the_seed_floor_plan_with_plain_walls_and_few_features():
+    from topomap.sim.world import office_world
+
+    plain, office = generate_world(3), office_world(3)
+    assert np.array_equal(plain.segments, office.segments) and plain.routes == office.routes
+    assert office.name == "office3" and office == resolve_world("office:3")
+    kinds = [w.texture.split(":")[1] if w.texture.startswith("proc:") else "photo" for w in office.walls]
+    share = {k: kinds.count(k) / len(kinds) for k in set(kinds)}
+    assert "photo" not in share and share["paint"] > 0.45
+    assert 0.03 < share.get("frame", 0) < 0.2 and share.get("door", 0) > 0.05 and share.get("fitting", 0) > 0.1
+    orb = cv2.ORB_create(500)
+
+    def features(key):
+        return len(orb.detect(cv2.cvtColor(tx.texture_image(key), cv2.COLOR_RGB2GRAY), None))
+
+    paint = [features(f"proc:paint:{s}") for s in range(5)]
+    poster = [features(f"proc:poster:{s}") for s in range(5)]
+    assert max(paint) < 0.2 * min(poster)  # plain paint offers local features almost nothing
+
+
+def test_world_presets_in_specs_and_bad_ones():
+    assert resolve_world("office").name == "office0"
+    with pytest.raises(DatasetError, match="must be an integer"):
+        resolve_world("office:x")
+    with pytest.raises(ConfigError, match="unknown world style 'gallery'"):
+        generate_world(1, style="gallery")

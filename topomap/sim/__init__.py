@@ -2,6 +2,7 @@
 
 * :mod:`~topomap.sim.world` — floor plans (corridors, junctions, rooms, loops) from a seed, JSON files;
 * :mod:`~topomap.sim.textures` — wall photographs and procedural patterns;
+* :mod:`~topomap.sim.conditions` — changed conditions between teach and repeat (light, camera, moved panels);
 * :mod:`~topomap.sim.render` — the :class:`Renderer` protocol and its PyBullet (TinyRenderer) backend;
 * :mod:`~topomap.sim.vehicle` — unicycle / omni kinematics ``xi' = G(theta)(u + d)``, disturbance presets, collisions;
 * :mod:`~topomap.sim.simulator` — :class:`Simulator` with its two sides, ``sim.robot`` (images and
@@ -12,6 +13,7 @@
 
 from __future__ import annotations
 
+from topomap.sim.conditions import CONDITION_PRESETS, Conditions, apply_conditions, moved_world, parse_conditions
 from topomap.sim.geometry import CAMERA_HEIGHT_M, Pose, camera_from_world, project_world_points
 from topomap.sim.plot import plot_world
 from topomap.sim.render import RENDERERS, PyBulletRenderer, Renderer, make_renderer
@@ -25,7 +27,19 @@ from topomap.sim.vehicle import (
     disturbance_preset,
     parse_disturbance,
 )
-from topomap.sim.world import Marker, Rect, Route, Wall, World, default_world, generate_world, load_world, resolve_world
+from topomap.sim.world import (
+    WORLD_STYLES,
+    Marker,
+    Rect,
+    Route,
+    Wall,
+    World,
+    default_world,
+    generate_world,
+    load_world,
+    office_world,
+    resolve_world,
+)
 
 __all__ = [
     "World", "Wall", "Rect", "Route", "Marker", "generate_world", "default_world", "load_world", "resolve_world",
@@ -35,4 +49,6 @@ __all__ = [
     "Simulator", "Robot", "RobotInterface", "GroundTruth", "StepReport", "default_camera", "route_start",
     "teach", "TeachConfig", "TeachResult", "PurePursuit",
     "plot_world",
+    "Conditions", "CONDITION_PRESETS", "parse_conditions", "apply_conditions", "moved_world",
+    "WORLD_STYLES", "office_world",
 ]

@@ -27,6 +27,7 @@ from topomap.groundtruth import PoseTable
 from topomap.localize import Localizer
 from topomap.motion import Command
 from topomap.navigate import EventKind, NavEvent, Navigator, NavStatus
+from topomap.sim.conditions import Conditions
 from topomap.sim.simulator import Simulator
 from topomap.sim.world import World
 
@@ -106,17 +107,19 @@ def run_episode(
     localizer: Localizer | None = None,
     on_event: Callable[[NavEvent], None] | None = None,
     on_truth: Callable[[float, np.ndarray], None] | None = None,
+    conditions: str | Conditions | None = None,
 ) -> EpisodeResult:
     """Put a simulated robot at ``start_pose`` (default: the keyframe pose of ``start_node``, or of
     node 0), let the navigator drive it to ``goal`` from images alone, and score the end.
 
     ``on_event`` hears the navigator's events; ``on_truth(time_s, pose)`` the simulator's true pose
-    ``(x, z, theta)`` where each control step's image was taken (for recordings and scoring only)."""
+    ``(x, z, theta)`` where each control step's image was taken (for recordings and scoring only);
+    ``conditions``: how the repeat run looks (:mod:`topomap.sim.conditions`; default as taught)."""
     target = goal_pose(tmap, poses, goal)
     if start_pose is None:
         start_pose = tuple(goal_pose(tmap, poses, start_node if start_node is not None else min(tmap.nodes)))
     with Simulator(world, vehicle=vehicle, disturbance=disturbance, seed=seed, start_pose=start_pose,
-                   camera=_camera_for(tmap)) as sim:
+                   camera=_camera_for(tmap), conditions=conditions) as sim:
         nav = Navigator(tmap, sim.robot, vehicle, navigate_config, servo_config, localize_config, localizer=localizer)
         first_route: tuple[int, ...] = ()
         for ev in nav.run(goal, start_node=start_node):

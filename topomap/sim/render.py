@@ -115,7 +115,9 @@ class PyBulletRenderer:
     """TinyRenderer images of ``world`` through ``camera`` at ``camera_height_m`` (headless, CPU).
 
     ``cull`` hides panels that cannot be seen before each frame (same image, 5-10 % faster);
-    ``lighting``: TinyRenderer's ``(ambient, diffuse)`` coefficients; ``cell_m``: wall strips and
+    ``lighting``: TinyRenderer's ``(ambient, diffuse)`` coefficients; ``light_direction``: towards
+    its one directional light, world axes ``(x, z, up)``; ``light_rgb``: that light's colour (it
+    tints the diffuse term only; see :mod:`topomap.sim.conditions`); ``cell_m``: wall strips and
     floor/ceiling cells are at most this wide [m]. Use as a context manager or call :meth:`close`.
     """
 
@@ -127,6 +129,8 @@ class PyBulletRenderer:
         *,
         cull: bool = True,
         lighting: tuple[float, float] = (0.75, 0.35),
+        light_direction: tuple[float, float, float] = (0.4, 0.7, 1.0),
+        light_rgb: tuple[float, float, float] = (1.0, 1.0, 1.0),
         far_m: float | None = None,
         cell_m: float = 1.0,
     ) -> None:
@@ -141,6 +145,8 @@ class PyBulletRenderer:
         self.camera_height_m = float(camera_height_m)
         self.cull = bool(cull) and camera.skew == 0.0
         self._ambient, self._diffuse = (float(v) for v in lighting)
+        self._light_dir = [float(v) for v in light_direction]
+        self._light_rgb = [float(v) for v in light_rgb]
         self._cell = float(cell_m)
         x0, z0, x1, z1 = world.bounds()
         self._far = float(far_m or 2.0 * math.hypot(x1 - x0, z1 - z0) + 10.0)
@@ -288,7 +294,8 @@ class PyBulletRenderer:
             renderer=self._p.ER_TINY_RENDERER,
             flags=self._p.ER_NO_SEGMENTATION_MASK,
             shadow=0,
-            lightDirection=[0.4, 0.7, 1.0],
+            lightDirection=self._light_dir,
+            lightColor=self._light_rgb,
             lightAmbientCoeff=self._ambient,
             lightDiffuseCoeff=self._diffuse,
             lightSpecularCoeff=0.0,

@@ -26,6 +26,7 @@ import numpy as np
 from topomap.camera import CameraIntrinsics
 from topomap.errors import ConfigError
 from topomap.motion import Command, VehicleKind, vehicle_kind
+from topomap.sim.conditions import Conditions, apply_conditions, moved_world, parse_conditions
 from topomap.sim.geometry import CAMERA_HEIGHT_M, Pose
 from topomap.sim.render import Renderer, make_renderer
 from topomap.sim.vehicle import DisturbanceConfig, Vehicle, VehicleConfig, parse_disturbance
@@ -100,8 +101,7 @@ class Robot:
 
     def render(self) -> np.ndarray:
         """The current camera image: a fresh ``(H, W, 3) uint8`` RGB array (nothing attached)."""
-        img = self._sim._renderer.render(Pose(*self._sim._vehicle.pose))
-        return np.array(img, dtype=np.uint8, copy=True)
+        return self._sim._image(Pose(*self._sim._vehicle.pose))
 
     def apply(self, command: Command, dt: float) -> StepReport:
         """Execute ``command`` for ``dt`` seconds (the vehicle adds its unknown disturbance)."""
@@ -165,8 +165,9 @@ class GroundTruth:
         return np.array(self._sim._trajectory, dtype=float)
 
     def render(self, pose: tuple[float, float, float] | None = None) -> np.ndarray:
-        """The image at ``pose`` (default: the true pose) without moving the vehicle."""
-        return self._sim._renderer.render(Pose(*(self._sim._vehicle.pose if pose is None else pose)))
+        """The image at ``pose`` (default: the true pose) without moving the vehicle (under the
+        simulator's conditions, like the robot's images)."""
+        return self._sim._image(Pose(*(self._sim._vehicle.pose if pose is None else pose)))
 
 
 class Simulator:
@@ -177,7 +178,11 @@ class Simulator:
     ``camera``: intrinsics with a size (default: :func:`default_camera`); ``seed``: the random
     walk's seed; ``start_pose``: default the start of the ``loop`` route (or of the first route);
     ``renderer``: a backend name of :data:`topomap.sim.render.RENDERERS`, or a :class:`Renderer` of
-    this world (its camera is used; it is not closed with the simulator, so one can serve many).
+    this world (its camera is used; it is not closed with the simulator, so one can serve many);
+    ``conditions``: how the run looks (:mod:`topomap.sim.conditions`: a preset name, a
+    ``"preset,key=value"`` spec or :class:`~topomap.sim.conditions.Conditions`) — light and moved
+    panels go into the renderer the simulator creates, camera effects onto every image (noise
+    seeded by ``seed``).
     """
 
     def __init__(
@@ -191,6 +196,7 @@ class Simulator:
         *,
         camera_height_m: float = CAMERA_HEIGHT_M,
         renderer: str | Renderer = "pybullet",
+        conditions: str | Conditions | None = None,
     ) -> None:
         self.world = world
         self.vehicle_config = vehicle if isinstance(vehicle, VehicleConfig) else VehicleConfig(kind=vehicle_kind(vehicle))
@@ -213,13 +219,25 @@ class Simulator:
         if not world.is_free(pose[0], pose[1]):
             raise ConfigError(f"start pose ({pose[0]:.2f}, {pose[1]:.2f}) is inside a wall; pick a point on the free floor")
         self._vehicle = Vehicle(self.vehicle_config, self.disturbance_config, world.segments, pose, seed=self.seed)
+        self.conditions = parse_conditions(conditions)
+        c = self.conditions
+        if not self._owns_renderer and (c.changes_light or c.changes_world):
+            raise ConfigError("light and moved-panel conditions need a renderer the simulator creates; "
+                              "give a renderer name, or build the renderer with those conditions")
         self._renderer = (
-            make_renderer(renderer, world, self.camera, self.camera_height_m) if isinstance(renderer, str) else renderer
+            make_renderer(renderer, moved_world(world, c), self.camera, self.camera_height_m,
+                          **(c.renderer_options() if c.changes_light else {}))
+            if isinstance(renderer, str) else renderer
         )
+        self._camera_rng = np.random.default_rng([self.seed, c.seed, 16])
         self._trajectory: list[tuple[float, float, float, float]] = []
         self._log()
         self.robot = Robot(self)
         self.ground_truth = GroundTruth(self)
+
+    def _image(self, pose: Pose) -> np.ndarray:
+        img = np.array(self._renderer.render(pose), dtype=np.uint8, copy=True)
+        return apply_conditions(img, self.conditions, self._camera_rng) if self.conditions.changes_image else img
 
     def _log(self) -> None:
         v = self._vehicle

@@ -28,6 +28,7 @@ from topomap.camera import CameraIntrinsics
 from topomap.errors import ConfigError, DatasetError
 from topomap.motion import Command
 from topomap.sim.geometry import CAMERA_HEIGHT_M, wrap_angle
+from topomap.sim.conditions import Conditions, parse_conditions
 from topomap.sim.simulator import Simulator, route_start
 from topomap.sim.world import Route, World
 
@@ -194,14 +195,17 @@ def teach(
     seed: int = 0,
     overwrite: bool = False,
     on_progress: Callable[[int, float], None] | None = None,
+    conditions: str | Conditions | None = None,
 ) -> TeachResult:
     """Drive ``route`` of ``world`` with the ground-truth follower and record a teach run in ``out_dir``.
 
     ``spacing_m`` overrides ``config.spacing_m``; ``on_progress(frames, fraction_done)`` is called
-    after each saved image. Raises :class:`DatasetError` if ``out_dir`` already holds a run (unless
+    after each saved image; ``conditions``: how the run looks (:mod:`topomap.sim.conditions`,
+    recorded in ``teach.json``; ``world.json`` keeps the world as generated). Raises :class:`DatasetError` if ``out_dir`` already holds a run (unless
     ``overwrite``) or if the route cannot be driven.
     """
     cfg = config or TeachConfig()
+    cond = parse_conditions(conditions)
     if spacing_m is not None:
         cfg = TeachConfig(**{**asdict(cfg), "spacing_m": spacing_m})
     r = world.route(route)
@@ -230,7 +234,7 @@ def teach(
     # (start time [s], dt [s], v_f, v_h, omega, index of the last image taken): the blind-replay baseline
     commands: list[tuple[float, float, float, float, float, int]] = []
     with Simulator(world, vehicle=vehicle, disturbance=disturbance, camera=camera, seed=seed,
-                   start_pose=start, camera_height_m=camera_height_m) as sim:
+                   start_pose=start, camera_height_m=camera_height_m, conditions=cond) as sim:
         gt = sim.ground_truth
         cam = sim.camera
 
@@ -294,6 +298,7 @@ def teach(
         "route": route, "vehicle": str(vehicle), "disturbance": str(disturbance), "seed": seed,
         "camera_height_m": camera_height_m, "frames": len(rows), "length_m": round(driven, 3),
         "duration_s": round(duration, 3), "collisions": collisions, "config": asdict(cfg),
+        "conditions": cond.to_dict(),
     }
     (out / "teach.json").write_text(json.dumps(meta, indent=2) + "\n")
     log.info("teach run of route %s: %d images over %.1f m in %s", route, len(rows), driven, out)

@@ -307,6 +307,100 @@ def _ceiling(rng: np.random.Generator) -> np.ndarray:
     return img
 
 
+# Office walls (the thesis' office, THESIS.md section 4): plain paint with few features. A paint
+# texture is nearly uniform on purpose — real painted walls give local features almost nothing.
+def _paint_colour(rng: np.random.Generator) -> np.ndarray:
+    tints = ((236, 234, 226), (228, 230, 232), (240, 236, 222), (222, 226, 214), (234, 226, 220))
+    return np.clip(np.array(tints[int(rng.integers(0, len(tints)))], np.float32) + rng.normal(0, 3, 3), 0, 255)
+
+
+def _paint_base(rng: np.random.Generator) -> np.ndarray:
+    """Painted wall: one colour with faint roller noise and a skirting board along the floor."""
+    s = _PROC_PX
+    img = np.empty((s, s, 3), np.float32)
+    img[:] = _paint_colour(rng)
+    img += cv2.GaussianBlur(rng.normal(0, 2.0, (s, s)).astype(np.float32), (0, 0), 3.0)[:, :, None]
+    skirting = np.array(_colour(rng, 60, 140), np.float32)
+    img[s - 10 :, :] = skirting  # 10 of 256 px: about 10 cm of a 2.5 m wall
+    img[s - 11, :] = skirting * 0.6
+    return img
+
+
+def _paint(rng: np.random.Generator) -> np.ndarray:
+    return np.clip(_paint_base(rng), 0, 255).astype(np.uint8)
+
+
+def _fitting(rng: np.random.Generator) -> np.ndarray:
+    """Paint with one or two small fittings: switch, socket, radiator, extinguisher sign, thermostat."""
+    img = np.clip(_paint_base(rng), 0, 255).astype(np.uint8)
+    s = _PROC_PX
+    for _ in range(int(rng.integers(1, 3))):
+        kind = int(rng.integers(0, 5))
+        x = int(rng.integers(20, s - 60))
+        if kind == 0:  # light switch at 1.1 m
+            y = int(s * (1 - 1.1 / 2.5))
+            cv2.rectangle(img, (x, y), (x + 9, y + 14), (245, 245, 240), -1)
+            cv2.rectangle(img, (x, y), (x + 9, y + 14), (150, 150, 150), 1)
+            cv2.rectangle(img, (x + 3, y + 4), (x + 6, y + 10), (200, 200, 200), -1)
+        elif kind == 1:  # socket at 0.3 m
+            y = int(s * (1 - 0.3 / 2.5))
+            cv2.rectangle(img, (x, y), (x + 12, y + 10), (240, 240, 236), -1)
+            cv2.rectangle(img, (x, y), (x + 12, y + 10), (140, 140, 140), 1)
+            cv2.circle(img, (x + 4, y + 5), 1, (60, 60, 60), -1)
+            cv2.circle(img, (x + 8, y + 5), 1, (60, 60, 60), -1)
+        elif kind == 2:  # radiator under a window sill height
+            w = int(rng.integers(50, 90))
+            x = min(x, s - w - 2)
+            y0, y1 = int(s * (1 - 0.75 / 2.5)), int(s * (1 - 0.15 / 2.5))
+            cv2.rectangle(img, (x, y0), (x + w, y1), (235, 235, 232), -1)
+            for xi in range(x + 3, x + w - 2, 5):
+                cv2.line(img, (xi, y0 + 2), (xi, y1 - 2), (190, 190, 186), 1)
+            cv2.rectangle(img, (x, y0), (x + w, y1), (160, 160, 156), 1)
+        elif kind == 3:  # extinguisher sign: a red square with a white pictogram
+            y = int(s * (1 - 1.8 / 2.5))
+            cv2.rectangle(img, (x, y), (x + 18, y + 18), (200, 30, 30), -1)
+            cv2.rectangle(img, (x + 6, y + 4), (x + 11, y + 15), (250, 250, 250), -1)
+        else:  # thermostat / alarm panel
+            y = int(s * (1 - 1.5 / 2.5))
+            cv2.rectangle(img, (x, y), (x + 14, y + 18), (225, 225, 220), -1)
+            cv2.rectangle(img, (x + 2, y + 3), (x + 11, y + 8), (70, 90, 80), -1)
+            cv2.rectangle(img, (x, y), (x + 14, y + 18), (120, 120, 120), 1)
+    return _noise(rng, img, 1.0)
+
+
+def _door(rng: np.random.Generator) -> np.ndarray:
+    """Paint with a door: frame, leaf, handle and a small sign."""
+    img = np.clip(_paint_base(rng), 0, 255).astype(np.uint8)
+    s = _PROC_PX
+    dw = int(rng.integers(80, 100))  # a 0.9 m leaf on a 2.5 m wall is about 92 px of 256
+    dx = int(rng.integers(20, s - dw - 20))
+    top = int(s * (1 - 2.05 / 2.5))
+    leaf = _colour(rng, 60, 200) if rng.random() < 0.5 else (205, 175, 130)
+    cv2.rectangle(img, (dx - 5, top - 5), (dx + dw + 5, s - 1), _colour(rng, 90, 200), -1)  # frame
+    cv2.rectangle(img, (dx, top), (dx + dw, s - 1), leaf, -1)
+    hy = int(s * (1 - 1.05 / 2.5))
+    hx = dx + dw - 12 if rng.random() < 0.5 else dx + 6
+    cv2.rectangle(img, (hx, hy), (hx + 7, hy + 3), (200, 200, 195), -1)
+    if rng.random() < 0.7:
+        sy = int(s * (1 - 1.6 / 2.5))
+        cv2.rectangle(img, (dx + 20, sy), (dx + dw - 20, sy + 12), (245, 245, 245), -1)
+        _scribble(rng, img, dx + 20, sy - 8, dx + dw - 20, sy + 12, (30, 30, 30))
+    return _noise(rng, img, 1.5)
+
+
+def _frame(rng: np.random.Generator) -> np.ndarray:
+    """Paint with one framed poster or notice at eye level (a sparse poster)."""
+    img = np.clip(_paint_base(rng), 0, 255).astype(np.uint8)
+    s = _PROC_PX
+    w, h = int(rng.integers(50, 100)), int(rng.integers(50, 80))
+    x = int(rng.integers(10, s - w - 10))
+    y = int(s * (1 - 1.9 / 2.5))
+    poster = _poster(rng)
+    img[y : y + h, x : x + w] = cv2.resize(poster, (w, h), interpolation=cv2.INTER_AREA)
+    cv2.rectangle(img, (x, y), (x + w, y + h), _colour(rng, 10, 70), 2)
+    return img
+
+
 #: Procedural texture kinds: name -> generator(rng) -> (256, 256, 3) uint8 RGB.
 PROCEDURAL: dict[str, Callable[[np.random.Generator], np.ndarray]] = {
     "poster": _poster,
@@ -315,12 +409,21 @@ PROCEDURAL: dict[str, Callable[[np.random.Generator], np.ndarray]] = {
     "panels": _panels,
     "tiles": _tiles,
     "ceiling": _ceiling,
+    "paint": _paint,
+    "fitting": _fitting,
+    "door": _door,
+    "frame": _frame,
 }
+
+
+# Each kind's random stream; fixed so that adding a kind never changes the pixels of existing worlds.
+_KIND_STREAM = {"board": 0, "bricks": 1, "ceiling": 2, "panels": 3, "poster": 4, "tiles": 5,
+                "paint": 6, "fitting": 7, "door": 8, "frame": 9}
 
 
 @functools.lru_cache(maxsize=128)
 def _procedural(name: str, seed: int) -> np.ndarray:
-    img = PROCEDURAL[name](np.random.default_rng([seed, sorted(PROCEDURAL).index(name)]))
+    img = PROCEDURAL[name](np.random.default_rng([seed, _KIND_STREAM[name]]))
     img = np.ascontiguousarray(img, dtype=np.uint8)
     img.setflags(write=False)
     return img

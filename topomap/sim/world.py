@@ -43,6 +43,8 @@ __all__ = [
     "WORLD_VERSION",
     "WALL_HEIGHT_M",
     "segment_distances",
+    "WORLD_STYLES",
+    "office_world",
 ]
 
 WORLD_FORMAT = "topomap-world"
@@ -376,7 +378,8 @@ def load_world(path: str | Path) -> World:
 
 
 def resolve_world(spec: str | int | Path | World | None, textures: str | Path | None = None) -> World:
-    """A world from a CLI-style spec: None/``default``, a seed (``"7"``) or a world JSON file.
+    """A world from a CLI-style spec: None/``default``, a seed (``"7"``), a style with an optional
+    seed (``"office"``, ``"office:7"``, :data:`WORLD_STYLES`) or a world JSON file.
 
     ``textures`` (a folder of photographs) replaces the wall photographs.
     """
@@ -386,6 +389,8 @@ def resolve_world(spec: str | int | Path | World | None, textures: str | Path | 
     if spec is None or str(spec) == "default":
         return default_world(textures=textures)
     s = str(spec)
+    if (preset := _preset_world(s, textures)) is not None:
+        return preset
     if isinstance(spec, int) or s.lstrip("-").isdigit():
         if int(s) < 0 or int(s) >= 2**63:
             raise DatasetError(f"world seed {s} must be an integer from 0 to 2**63 - 1")
@@ -426,15 +431,20 @@ def generate_world(
     wall_height_m: float = WALL_HEIGHT_M,
     textures: str | Path | None = None,
     name: str | None = None,
+    style: str = "default",
 ) -> World:
     """A seeded floor plan: ``lattice`` junctions ``spacing_m`` apart joined by corridors, plus rooms.
 
     ``lattice``: junctions along x and z (2..6 each); ``spacing_m``: range of junction spacing [m];
     ``rooms``: rooms to attach (fewer if they do not fit); ``inner_corridor_prob``: chance of keeping
-    each corridor off the perimeter; ``textures``: a folder of photographs for the walls.
+    each corridor off the perimeter; ``textures``: a folder of photographs for the walls;
+    ``style``: how walls are dressed (:data:`WORLD_STYLES`: ``default`` half photographs, ``office``
+    plain paint with sparse posters, doors and fittings).
     """
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) < 2**63:
         raise DatasetError(f"world seed {seed!r} must be an integer from 0 to 2**63 - 1")
+    if style not in WORLD_STYLES:
+        raise unknown_choice("world style", style, WORLD_STYLES)
     nx_, nz_ = (int(v) for v in lattice)
     if not (2 <= nx_ <= 6 and 2 <= nz_ <= 6):
         raise DatasetError(f"lattice {lattice} must have 2 to 6 junctions along each axis")
@@ -537,7 +547,7 @@ def generate_world(
 
     walls_geom = _walls_from_grid(free, rng)
     pool = _texture_pool(rng, textures)
-    walls = _assign_textures(rng, walls_geom, pool)
+    walls = _assign_textures(rng, walls_geom, pool, style)
     floor = f"proc:tiles:{int(rng.integers(0, 1000))}"
     ceiling = f"proc:ceiling:{int(rng.integers(0, 1000))}"
     free_rects = tuple(_rects_from_grid(free))
@@ -573,7 +583,7 @@ def generate_world(
         ceiling_texture=ceiling,
         texture_dir=None if textures is None else str(Path(textures).resolve()),
         seed=int(seed),
-        name=name or f"seed{int(seed)}",
+        name=name or (f"seed{int(seed)}" if style == "default" else f"{style}{int(seed)}"),
     )
 
 
@@ -659,16 +669,43 @@ def _texture_pool(rng: np.random.Generator, texture_dir: str | Path | None) -> l
     return [pool[i] for i in rng.permutation(len(pool))]
 
 
-def _assign_textures(rng: np.random.Generator, panels, pool: list[str]) -> list[Wall]:
+def _assign_textures(rng: np.random.Generator, panels, pool: list[str], style: str = "default") -> list[Wall]:
     """One texture per panel: about half photographs, each used once (identical walls in two places
-    would make false loop closures certain), the others procedural patterns with their own seeds."""
+    would make false loop closures certain), the others procedural patterns with their own seeds
+    (the share and the patterns are the ``style``'s, :data:`WORLD_STYLES`)."""
+    share, kinds = WORLD_STYLES[style]
     walls = []
     k = 0
     for x0, z0, x1, z1 in panels:
-        if rng.random() < PHOTO_SHARE and k < len(pool):
+        if rng.random() < share and k < len(pool):
             key = pool[k]
             k += 1
         else:
-            key = f"proc:{_WALL_KINDS[int(rng.integers(0, len(_WALL_KINDS)))]}:{int(rng.integers(0, 1_000_000))}"
+            key = f"proc:{kinds[int(rng.integers(0, len(kinds)))]}:{int(rng.integers(0, 1_000_000))}"
         walls.append(Wall(_r(x0), _r(z0), _r(x1), _r(z1), key))  # rounded as in the JSON file
     return walls
+
+
+# ---------------------------------------------------------------------- styles and presets
+#: Wall styles: name -> (share of panels showing a photograph, procedural kinds drawn with repeats
+#: as weights). ``office``: the thesis' office (THESIS.md section 4), mostly plain paint; about one
+#: panel in ten carries a poster, one in eight a door, one in five a small fitting.
+WORLD_STYLES: dict[str, tuple[float, tuple[str, ...]]] = {
+    "default": (PHOTO_SHARE, _WALL_KINDS),
+    "office": (0.0, ("paint",) * 23 + ("fitting",) * 8 + ("door",) * 5 + ("frame",) * 4),
+}
+
+
+def office_world(seed: int = 0, **options) -> World:
+    """A plain office: :func:`generate_world` with ``style="office"`` (same floor plans as the seed)."""
+    return generate_world(seed, style="office", **options)
+
+
+def _preset_world(spec: str, textures: str | Path | None) -> World | None:
+    """``STYLE`` or ``STYLE:SEED`` (e.g. ``office:7``) for a non-default style; None otherwise."""
+    style, _, seed = spec.partition(":")
+    if style not in WORLD_STYLES or style == "default":
+        return None
+    if seed and not seed.lstrip("-").isdigit():
+        raise DatasetError(f"world {spec!r}: the seed after '{style}:' must be an integer, like {style}:7")
+    return generate_world(int(seed or 0), style=style, textures=textures)
