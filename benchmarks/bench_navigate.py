@@ -8,7 +8,7 @@ an hour on 2 cores; 0 allows any goal), a vehicle (unicycle and omni alternate),
 the ``--disturbance`` preset (default ``harsh``). Every episode is run three ways, side by side:
 
 * **topomap**: the navigator (localize -> plan -> servo -> switch) with the default servo, which
-  estimates and cancels the unknown input disturbances (THESIS.md sections 2-3);
+  estimates and cancels the unknown input disturbances (docs/theory.md sections 2-3);
 * **uncompensated**: the same navigator and servo laws with disturbance compensation off
   (``servo_preset("uncompensated")``);
 * **blind replay**: the teach run's own commands from the start node's image to the goal's image,

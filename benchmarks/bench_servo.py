@@ -1,7 +1,7 @@
 """Relative pose for appearance servoing: planar 3-point RANSAC vs OpenCV's 5-point essential matrix.
 
 Same synthetic matches for both (a textured room, 0.5 px noise, 20 % outliers, random planar poses
-of the current camera around the goal camera; THESIS.md section 3):
+of the current camera around the goal camera; docs/theory.md section 3):
 
 * topomap: ``topomap.servo.relative_pose`` — planar essential matrix, 3-point MSAC scored in both
   image coordinates, robust refinement, scale; also its RANSAC stage alone;

@@ -1,6 +1,6 @@
 """The typer application, its error policy and small shared helpers for the command modules.
 
-Error policy (DESIGN.md habit 5): a :class:`~topomap.errors.TopomapError` or a command-line usage
+Error policy (docs/design.md section 3.5): a :class:`~topomap.errors.TopomapError` or a command-line usage
 error becomes one line on stderr and exit code 1; anything else is a bug and keeps its traceback.
 """
 

@@ -20,7 +20,7 @@ from topomap.observability.observer import ObserverConfig, plot_simulation, simu
 from topomap_cli.app import app, console, fail, print_json
 
 obs_app = typer.Typer(
-    help="What can be recovered from bearings alone (THESIS.md section 2), and an observer that recovers it.",
+    help="What can be recovered from bearings alone (docs/theory.md section 2), and an observer that recovers it.",
     no_args_is_help=False,
     context_settings={"help_option_names": ["-h", "--help"]},
 )

@@ -1,4 +1,4 @@
-"""``topomap plan``: the cheapest route between two nodes of a map (servo cost, THESIS.md section 4)."""
+"""``topomap plan``: the cheapest route between two nodes of a map (servo cost, docs/theory.md section 4)."""
 
 from __future__ import annotations
 

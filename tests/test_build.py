@@ -72,7 +72,7 @@ def test_flow_limit_starts_keyframes(walk):
 
 
 def test_each_frame_verifies_against_its_node(walk):
-    """A frame's node is a keyframe it shares enough verified matches with (THESIS.md section 4)."""
+    """A frame's node is a keyframe it shares enough verified matches with (docs/theory.md section 4)."""
     folder, xs, m = walk
     cfg = m.config
     seq = open_sequence(folder)

@@ -1,4 +1,4 @@
-"""topomap.observability: exact ranks (THESIS.md section 2), directions, the observer, the CLI."""
+"""topomap.observability: exact ranks (docs/theory.md section 2), directions, the observer, the CLI."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ def unobs(vehicle, markers, targets, half, inputs, reading="analytic", order=0, 
                    directions=False).unobservable_dimension
 
 
-# ----------------------------------------------------------------------------- THESIS.md rows
+# ----------------------------------------------------------------------------- docs/theory.md rows
 @pytest.mark.parametrize(
     "config, known, analytic",
     [

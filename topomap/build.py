@@ -1,4 +1,4 @@
-"""Image sequence -> keyframes -> sequential and loop-closure edges (THESIS.md section 4).
+"""Image sequence -> keyframes -> sequential and loop-closure edges (docs/theory.md section 4).
 
 The build reads as hloc's pipelines do, one stage after the other, each a plain function:
 sources (:func:`_frame_tasks`) -> features (:func:`prepare_frame`, per frame) -> keyframes
@@ -12,7 +12,7 @@ share enough verified matches, which moved little across the image, the frame is
 keyframe's node. When the matches fall below the threshold (or moved too far), the last frame that
 still matched well becomes the next keyframe (so
 consecutive keyframes keep plenty of common, verified features — servoing between them stays
-feasible, far above the 3-point minimum of THESIS.md section 3) and the frame is matched again
+feasible, far above the 3-point minimum of docs/theory.md section 3) and the frame is matched again
 against it; if even that fails, the frame itself starts a node. The decisions are sequential, but
 with several workers the verifications of the next frames against the current keyframe are run
 ahead, in parallel (speculatively: those past a keyframe change are dropped), which gives the

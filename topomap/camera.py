@@ -1,6 +1,6 @@
 """Pinhole camera intrinsics: K, distortion, pixel <-> normalised coordinates and bearings.
 
-Conventions (THESIS.md section 1, eq. 1.18): ``lambda [u v 1]^T = K [I|0] P_cam`` with camera axes
+Conventions (docs/theory.md section 1, eq. 1.18): ``lambda [u v 1]^T = K [I|0] P_cam`` with camera axes
 X right, Y down, Z forward (OpenCV). Pixel coordinates follow OpenCV: the centre of the top-left
 pixel is (0, 0), so the image centre is ``((w - 1) / 2, (h - 1) / 2)``.
 

@@ -96,7 +96,7 @@ class BuildConfig:
     match: MatchConfig = field(default_factory=MatchConfig)
     # A frame joins the current keyframe while they share at least this many verified matches;
     # below it a new node starts. Servoing along an edge needs many more than the 3-point minimum
-    # (THESIS.md sections 3-4), hence far above 3.
+    # (docs/theory.md sections 3-4), hence far above 3.
     keyframe_min_inliers: int = 60
     # ... and while the verified matches keep at least this fraction of the keyframe's features ...
     keyframe_min_ratio: float = 0.1
@@ -280,7 +280,7 @@ def from_dict(cls, data: dict):
 
 
 # ---------------------------------------------------------------------- appearance servoing
-# (THESIS.md section 3; used by topomap.servo)
+# (docs/theory.md section 3; used by topomap.servo)
 @dataclass(frozen=True)
 class RelativePoseConfig:
     """Planar relative pose from matched points (see :mod:`topomap.servo.geometry`)."""
@@ -316,7 +316,7 @@ class RelativePoseConfig:
         if self.ransac_max_iters < 1:
             raise ConfigError("ransac_max_iters must be at least 1")
         if self.min_inliers < 3:
-            raise ConfigError(f"min_inliers={self.min_inliers} must be at least 3 (THESIS.md section 3)")
+            raise ConfigError(f"min_inliers={self.min_inliers} must be at least 3 (docs/theory.md section 3)")
         if self.scale not in ("median_depth", "camera_height"):
             raise unknown_choice("scale convention", self.scale, ["median_depth", "camera_height"])
         if self.rotation_f_ratio <= 1:
@@ -346,7 +346,7 @@ class ServoConfig:
     """Appearance servo: geometry + observer + control law (see :mod:`topomap.servo`).
 
     Positions reach the laws divided by the unknown scale lambda; the gains assume lambda equals
-    ``nominal_scale_m`` (THESIS.md section 3: a wrong guess only changes the loop gain).
+    ``nominal_scale_m`` (docs/theory.md section 3: a wrong guess only changes the loop gain).
     """
 
     geometry: RelativePoseConfig = field(default_factory=RelativePoseConfig)
@@ -354,7 +354,7 @@ class ServoConfig:
     max_speed_mps: float = 0.3  # saturation of v_f and v_h [m/s]
     max_turn_rps: float = 0.6  # saturation of omega [rad/s]
     nominal_scale_m: float = 3.0  # lambda_0: metres per scaled unit assumed by the gains [m]
-    # unicycle, Aicardi 1995 in polar coordinates (THESIS.md section 3)
+    # unicycle, Aicardi 1995 in polar coordinates (docs/theory.md section 3)
     unicycle_law: str = "scale_free"  # scale_free (steers with the observed v/e) | aicardi (nominal)
     gamma: float = 0.4  # forward gain [1/s]
     k_alpha: float = 1.2  # bearing gain k [1/s]
@@ -412,7 +412,7 @@ __all__ += ["RelativePoseConfig", "ObserverConfig", "ServoConfig", "SERVO_PRESET
 
 
 # ---------------------------------------------------------------------- route planning
-# (THESIS.md section 4: edge weight = how hard the servo along it is; used by topomap.plan)
+# (docs/theory.md section 4: edge weight = how hard the servo along it is; used by topomap.plan)
 @dataclass(frozen=True)
 class PlanConfig:
     """Edge costs and re-planning (see :mod:`topomap.plan`). Costs are in *hops*: one easy edge ~ 1.

@@ -1,5 +1,5 @@
 """Vehicle kinds and velocity commands shared by the servo (which computes them) and any vehicle
-(the simulator or a real robot) that executes them — THESIS.md section 1, eq. 1.7-1.8.
+(the simulator or a real robot) that executes them — docs/theory.md section 1, eq. 1.7-1.8.
 
 The commanded input is ``u = (v_f, v_h, omega)``: forward and sideways (leftward) speed in the
 vehicle frame and turning rate. A unicycle has ``v_h = 0``. Pose ``xi = (x, z, theta)``:
@@ -20,7 +20,7 @@ __all__ = ["VehicleKind", "Command", "vehicle_kind"]
 
 
 class VehicleKind(str, enum.Enum):
-    """Kinematic model of the vehicle (THESIS.md section 1)."""
+    """Kinematic model of the vehicle (docs/theory.md section 1)."""
 
     UNICYCLE = "unicycle"  # u = (v_f, 0, omega)
     OMNI = "omni"  # u = (v_f, v_h, omega)

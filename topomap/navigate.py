@@ -1,6 +1,6 @@
 """The navigation loop: localize -> plan -> servo toward each subgoal -> switch -> re-localize when lost.
 
-This is the only control loop of topomap (THESIS.md section 4). It sees what a robot sees: its
+This is the only control loop of topomap (docs/theory.md section 4). It sees what a robot sees: its
 camera's images and intrinsics, the map, and the commands it sends. It never reads a pose — the
 robot it drives is anything with ``camera``, ``render()`` and ``apply(command, dt)``
 (:class:`RobotLike`; the simulator's ``sim.robot`` or a real robot driver).

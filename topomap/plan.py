@@ -1,5 +1,5 @@
 """Routes over the map graph: edge costs that say how hard servoing along an edge is, Dijkstra, and
-re-planning after an edge failed during navigation (THESIS.md section 4).
+re-planning after an edge failed during navigation (docs/theory.md section 4).
 
 Navigation executes a route as a chain of appearance-servo subtasks toward consecutive node images,
 so a route should be cheap to *servo*, not merely short: an edge whose keyframes share few verified
@@ -33,7 +33,7 @@ log.addHandler(logging.NullHandler())
 
 
 def edge_cost(edge: Edge, map_config: BuildConfig, plan_config: PlanConfig, working_size: tuple[int, int]) -> float:
-    """Cost [hops] of servoing along ``edge`` of a map built with ``map_config`` (THESIS.md section 4).
+    """Cost [hops] of servoing along ``edge`` of a map built with ``map_config`` (docs/theory.md section 4).
 
     ``working_size``: ``(width, height)`` [px] at which the map's keypoints and ``edge.flow_px``
     are expressed (``TopoMap.working_size``). With ``n0 = map_config.match.min_inliers`` (the

@@ -1,6 +1,6 @@
 """Synthetic scenes for the servo tests: 3D points in a room, projected into cameras on a vehicle.
 
-World: floor plan (x, z) with the THESIS.md section 1 pose convention (x, z, theta), heights above
+World: floor plan (x, z) with the docs/theory.md section 1 pose convention (x, z, theta), heights above
 the floor. The camera sits on the vehicle's rotation axis at ``CAM_HEIGHT`` with a horizontal optical
 axis (OpenCV axes: X right, Y down, Z forward).
 """
@@ -94,7 +94,7 @@ def median_goal_depth(points, goal, idx, cam_height=CAM_HEIGHT) -> float:
 # ----------------------------------------------------------------------------- kinematics
 def integrate(pose, u, dt: float):
     """Exact pose after ``dt`` under constant effective input ``u = (v_f, v_h, omega)``:
-    ``xi' = G(theta) u`` (THESIS.md eq. 1.7), the SE(2) exponential."""
+    ``xi' = G(theta) u`` (docs/theory.md eq. 1.7), the SE(2) exponential."""
     x, z, th = pose
     v_f, v_h, w = u
     a = w * dt

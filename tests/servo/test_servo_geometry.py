@@ -1,5 +1,5 @@
 """Relative pose from two images (topomap.servo.geometry), on synthetic 3D points projected into two
-camera poses (THESIS.md section 3): planar essential matrix, minimal solver, RANSAC, refinement, scale
+camera poses (docs/theory.md section 3): planar essential matrix, minimal solver, RANSAC, refinement, scale
 conventions, degeneracies, and the 2-point dynamic mode."""
 
 from __future__ import annotations
@@ -244,7 +244,7 @@ def test_two_points_give_at_most_two_solutions_one_of_them_true():
 
 def test_two_point_tracker_settles_on_the_true_solution_while_driving():
     # two features seen from a unicycle driving forward while turning: the static problem has two
-    # solutions; the motion tells them apart (THESIS.md section 3, dynamic AS)
+    # solutions; the motion tells them apart (docs/theory.md section 3, dynamic AS)
     pts = np.array([[4.0, 1.0, 0.1], [5.0, -1.5, 2.2]])
     goal = (0.0, 0.0, 0.0)
     tracker = TwoPointTracker()

@@ -1,5 +1,5 @@
 """Control laws (topomap.servo.laws): conventions, Lyapunov property, saturation, and closed-loop
-behaviour on the kinematic models xi' = G(theta)(u + d) (THESIS.md sections 1, 3), integrated exactly,
+behaviour on the kinematic models xi' = G(theta)(u + d) (docs/theory.md sections 1, 3), integrated exactly,
 from a grid of initial poses, for every disturbance preset and several unknown scales lambda."""
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ def test_along_track_error_is_the_goal_distance_ahead():
 
 
 def test_scale_free_law_makes_v2_decrease_at_minus_k_alpha_squared():
-    # THESIS.md section 3: omega = k a + r (sin a / a)(a + h thA) - d_hat gives V2' = -k a^2 for any
+    # docs/theory.md section 3: omega = k a + r (sin a / a)(a + h thA) - d_hat gives V2' = -k a^2 for any
     # scale and forward disturbance, when r is the true (v + d_v) / e.
     rng = np.random.default_rng(0)
     cfg = ServoConfig(max_speed_mps=100.0, max_turn_rps=100.0)
@@ -92,7 +92,7 @@ def test_scale_free_law_makes_v2_decrease_at_minus_k_alpha_squared():
         cmd = aicardi_command(e_s, alpha, theta_a, cfg, d_omega_hat=d_w, kappa_hat=kappa, mu_hat=mu)
         e = lam * e_s
         v_eff, w_eff = cmd.v_f + d_f, cmd.omega + d_w
-        alpha_dot = math.sin(alpha) * v_eff / e - w_eff  # THESIS.md section 1, unicycle
+        alpha_dot = math.sin(alpha) * v_eff / e - w_eff  # docs/theory.md section 1, unicycle
         theta_a_dot = math.sin(alpha) * v_eff / e
         v2_dot = alpha * alpha_dot + cfg.h * theta_a * theta_a_dot
         assert v2_dot == pytest.approx(-cfg.k_alpha * alpha**2, rel=1e-9, abs=1e-12)
@@ -165,7 +165,7 @@ def test_closed_loop_converges_from_a_grid_of_poses(vehicle, dist_name):
 @pytest.mark.slow
 @pytest.mark.parametrize("vehicle", ["unicycle", "omni"])
 def test_compensation_removes_the_heading_error_of_a_constant_d_omega(vehicle):
-    # THESIS.md section 3: the nominal law keeps a steady heading error under a constant d_omega
+    # docs/theory.md section 3: the nominal law keeps a steady heading error under a constant d_omega
     for scale in SCALES:
         comp = grid("default", vehicle, "omega", scale)
         nominal = grid("uncompensated", vehicle, "omega", scale)

@@ -1,6 +1,6 @@
 """AppearanceServo end to end: synthetic 3D points projected into the current and goal cameras at
 every step, pixel noise and outliers, the servo's command driving the kinematic vehicle with unknown
-disturbances; convergence within 0.05 m / 3 deg (THESIS.md section 3)."""
+disturbances; convergence within 0.05 m / 3 deg (docs/theory.md section 3)."""
 
 from __future__ import annotations
 

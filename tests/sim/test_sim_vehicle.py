@@ -1,4 +1,4 @@
-"""Kinematics (THESIS.md eq. 1.7-1.8) against closed forms, disturbance presets, collisions."""
+"""Kinematics (docs/theory.md eq. 1.7-1.8) against closed forms, disturbance presets, collisions."""
 
 from __future__ import annotations
 

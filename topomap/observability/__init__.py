@@ -1,5 +1,5 @@
 """Observability of bearing-only vehicle/landmark systems with known or unknown inputs, and an
-unknown-input observer (THESIS.md section 2; thesis chapters 2-3).
+unknown-input observer (docs/theory.md section 2; thesis chapters 2-3).
 
 * :mod:`~topomap.observability.system`: sympy system descriptions, augmentation with the unknown
   inputs (readings A / P), the vehicle/landmark and scalar linear builders;

@@ -1,5 +1,5 @@
 """The rank test: exact generic rank of the observability codistribution, unobservable directions,
-and the thesis' table (THESIS.md section 2).
+and the thesis' table (docs/theory.md section 2).
 
 Method. The rows ``d L^j h`` of the codistribution (Hermann-Krener; with known inputs, the span of
 all iterated Lie derivatives along the input fields) are evaluated exactly in GF(p) at a random point

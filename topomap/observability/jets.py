@@ -2,7 +2,7 @@
 
 Along the flow ``x(t)`` of the drift, ``L_f^j h(x0) = j! [t^j] h(x(t))``; carrying with every Taylor
 coefficient its gradient with respect to ``x0`` (dual numbers) gives the rows ``d L_f^j h (x0)`` of the
-observability codistribution (THESIS.md section 2) without ever forming ``L_f^j h`` symbolically.
+observability codistribution (docs/theory.md section 2) without ever forming ``L_f^j h`` symbolically.
 Hand-written because symbolic Lie derivatives of bearings swell past sympy's reach beyond order ~5,
 and no maintained library does Taylor-mode differentiation over a finite field.
 

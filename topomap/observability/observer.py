@@ -1,4 +1,4 @@
-"""Unknown-input observer for bearing-only vehicles (THESIS.md section 2, observer, §2.5).
+"""Unknown-input observer for bearing-only vehicles (docs/theory.md section 2, observer, §2.5).
 
 A high-gain differentiator estimates the output derivatives ``Z = (y, y', ..., y^(k+1))``; the
 augmented state ``xi_e = (xi, landmarks, d, ..., d^(k))`` (reading A) follows

@@ -1,4 +1,4 @@
-"""System descriptions for the observability analysis (THESIS.md sections 1-2).
+"""System descriptions for the observability analysis (docs/theory.md sections 1-2).
 
 A :class:`System` is a sympy description ``x' = f(x) + G(x) u + B(x) d``, ``y = h(x)`` with known
 inputs ``u`` and unknown inputs ``d``. :func:`augment` turns the unknown inputs into states
@@ -45,7 +45,7 @@ class InputKind(str, enum.Enum):
 
 
 class Reading(str, enum.Enum):
-    """How the unknown inputs are modelled after augmentation to order k (THESIS.md section 2)."""
+    """How the unknown inputs are modelled after augmentation to order k (docs/theory.md section 2)."""
 
     ANALYTIC = "analytic"  # (A): d^(k+1) unknown, output derivatives up to order k + 1 only
     POLYNOMIAL = "polynomial"  # (P): d^(k+1) = 0, every Lie derivative allowed
@@ -162,7 +162,7 @@ def _derivative_name(base: str, j: int) -> str:
 
 
 def augment(system: System, order: int, reading: str | Reading) -> System:
-    """Unknown inputs become states: ``x_e = (x, d, d', ..., d^(k))`` (THESIS.md section 2).
+    """Unknown inputs become states: ``x_e = (x, d, d', ..., d^(k))`` (docs/theory.md section 2).
 
     Drift ``(f + B d, d', ..., d^(k), 0)``. Reading (A) allows output derivatives up to ``k + 1``
     only (``max_derivative``); reading (P) takes ``d^(k+1) = 0`` and allows all of them.
@@ -220,7 +220,7 @@ def vehicle_landmark_system(
     reading: str | Reading = "analytic",
     order: int = 0,
 ) -> System:
-    """The bearing-only system of a vehicle among landmarks (THESIS.md sections 1-2).
+    """The bearing-only system of a vehicle among landmarks (docs/theory.md sections 1-2).
 
     State ``(x, z, theta)`` with ``xi' = G(theta)(u + d)`` (eq. 1.7-1.8; the unicycle has no
     sideways channel), plus the unknown coordinates of the landmarks: a *marker* ``m_i`` is known

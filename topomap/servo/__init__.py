@@ -1,4 +1,4 @@
-"""Appearance servoing: relative pose from two images, control laws, disturbance observer (THESIS.md section 3).
+"""Appearance servoing: relative pose from two images, control laws, disturbance observer (docs/theory.md section 3).
 
 Typical use, one call per control period::
 

@@ -1,6 +1,6 @@
 """Scaled planar relative pose of the current camera w.r.t. a target camera, from matched points.
 
-THESIS.md section 3 (static and dynamic appearance servoing). The camera rides at a constant height
+docs/theory.md section 3 (static and dynamic appearance servoing). The camera rides at a constant height
 with a horizontal optical axis, so the current camera differs from the target (goal) camera by a
 rotation ``theta`` about the vertical axis and a horizontal translation.
 
@@ -11,12 +11,12 @@ Frames and conventions
 * Goal camera -> current camera: ``X_cur = R (X_goal - c)`` with ``R = R_y(theta)`` and ``c`` the
   current camera centre in the goal camera frame (``c_Y = 0``); the essential matrix is
   ``E = [t]_x R`` with ``t = -R c`` and ``m_curᵀ E m_goal = 0``.
-* The result is reported as a vehicle pose in the goal frame, THESIS.md section 1: ``x`` forward,
+* The result is reported as a vehicle pose in the goal frame, docs/theory.md section 1: ``x`` forward,
   ``z`` to the left, ``theta`` counter-clockwise (``x = c_Z``, ``z = -c_X``); polar coordinates
   ``rho, phi = atan2(z, x), beta = phi - theta + pi`` (eq. 1.9). The camera is taken to sit on the
   vehicle's rotation axis.
 
-Scale convention (the one unknown constant lambda of THESIS.md section 3)
+Scale convention (the one unknown constant lambda of docs/theory.md section 3)
 --------------------------------------------------------------------------
 Positions are reported as ``(x, z) / lambda``:
 
@@ -24,7 +24,7 @@ Positions are reported as ``(x, z) / lambda``:
   It is a property of the goal image (for a given goal it only varies with which points match), needs
   no assumption about the scene, and works for any camera.
 * ``camera_height``: ``lambda`` = the camera height above the floor. It uses the camera-height
-  trick (THESIS.md section 3 [C]: the vertical image coordinate carries depth because the camera
+  trick (docs/theory.md section 3: the vertical image coordinate carries depth because the camera
   height is constant): floor points are the lowest points below the horizon, so
   ``|c| / h = quantile(a_i / y_i)`` over points below the horizon. The result is metric once
   multiplied by the camera height, which is fixed and known to the robot; it needs a visible,
@@ -41,7 +41,7 @@ Pipeline of :func:`relative_pose`
    hypothesis is scored by the reprojection error in both image coordinates with the per-point
    depth eliminated in closed form (the vertical coordinate carries the depth ratio), which rejects
    wrong-heading models that the one-dimensional epipolar test accepts in a narrow field of view;
-2. decomposition ``theta, t`` (THESIS.md section 3) — the twisted pair is not planar, so only the
+2. decomposition ``theta, t`` (docs/theory.md section 3) — the twisted pair is not planar, so only the
    sign of ``t`` is ambiguous;
 3. least-squares refinement on the inliers of the reprojection error in both image coordinates
    over ``(theta, direction of c)``, the per-point ``a_i`` eliminated in closed form (variable
@@ -54,7 +54,7 @@ Known limit: with few points (~60) and a mostly sideways motion, rotation and si
 are nearly confounded (the bas-relief ambiguity of narrow fields of view); heading errors of ~1 deg
 then remain.
 
-The dynamic 2-point mode (THESIS.md section 3, "Dynamic AS: 2 points suffice") is
+The dynamic 2-point mode (docs/theory.md section 3, "Dynamic AS: 2 points suffice") is
 :func:`two_point_candidates` (the static problem with 2 points: at most two solutions) plus
 :class:`TwoPointTracker` (keeps the solution whose motion agrees with the commanded input over time).
 """
@@ -164,7 +164,7 @@ class PlaneSolution:
 
 @dataclass(frozen=True, eq=False)
 class RelativePose:
-    """Scaled planar pose of the current camera in the goal frame (THESIS.md sections 1, 3).
+    """Scaled planar pose of the current camera in the goal frame (docs/theory.md sections 1, 3).
 
     ``theta`` relative heading, counter-clockwise [rad] (NaN when unknown); ``x_s, z_s`` position
     forward / leftward of the goal, divided by the scale ``lambda`` of ``scale`` (NaN when the
@@ -241,7 +241,7 @@ def _ry(theta: float) -> np.ndarray:
 
 
 def planar_essential(theta: float, t_xz) -> np.ndarray:
-    """``E = [t]_x R_y(theta)`` for ``t = (t_x, 0, t_z)`` (THESIS.md section 3): 4 nonzero entries."""
+    """``E = [t]_x R_y(theta)`` for ``t = (t_x, 0, t_z)`` (docs/theory.md section 3): 4 nonzero entries."""
     t_x, t_z = float(t_xz[0]), float(t_xz[-1])
     c, s = math.cos(theta), math.sin(theta)
     return np.array([[0.0, -t_z, 0.0], [t_z * c + t_x * s, 0.0, t_z * s - t_x * c], [0.0, t_x, 0.0]])
@@ -259,7 +259,7 @@ def _e_matrix(e: np.ndarray) -> np.ndarray:
 
 
 def essential_design_matrix(goal_n: np.ndarray, cur_n: np.ndarray) -> np.ndarray:
-    """(N, 4): row i is linear in ``(e1, e2, e3, e4)``; ``m_curᵀ E m_goal = A e`` (THESIS.md section 3)."""
+    """(N, 4): row i is linear in ``(e1, e2, e3, e4)``; ``m_curᵀ E m_goal = A e`` (docs/theory.md section 3)."""
     xg, yg = goal_n[:, 0], goal_n[:, 1]
     xc, yc = cur_n[:, 0], cur_n[:, 1]
     return np.stack([xc * yg, yc * xg, yc, yg], axis=1)
@@ -274,7 +274,7 @@ def solve_planar_essential_3pt(A3: np.ndarray) -> np.ndarray:
 def decompose_planar_essential(e: np.ndarray):
     """(B, 4) entries -> ``theta`` (B,) and unit ``t = (t_x, t_z)`` (B, 2), ``t`` up to sign.
 
-    THESIS.md section 3: ``t ∝ (e4, -e1)`` and ``(e2, e3) = -R2(theta) (e1, e4)``; with noise both
+    docs/theory.md section 3: ``t ∝ (e4, -e1)`` and ``(e2, e3) = -R2(theta) (e1, e4)``; with noise both
     halves give ``t``, averaged after rotating back.
     """
     e = np.atleast_2d(e)
@@ -295,7 +295,7 @@ def _reproj_sq_batch(theta: np.ndarray, t: np.ndarray, goal_n: np.ndarray, cur_n
 
     The current camera sees point i along ``R m_goal,i - a_i R c_hat`` and ``R c_hat = -t``; the depth
     parameter ``a_i`` is eliminated in closed form, so each match tests both image coordinates
-    (the vertical one carries the depth ratio, THESIS.md section 3 [C]), not only the epipolar line.
+    (the vertical one carries the depth ratio, docs/theory.md section 3), not only the epipolar line.
     """
     c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
     xg, yg = goal_n[None, :, 0], goal_n[None, :, 1]
@@ -531,7 +531,7 @@ def _rotation_only_theta(goal_n: np.ndarray, cur_n: np.ndarray) -> float:
 
 
 def _pca_direction(theta: float, goal_n, cur_n, min_abs_y: float) -> float | None:
-    """Direction of ``c`` from the per-point depth ratios ``y_goal / y_cur`` (THESIS.md section 3 [C])."""
+    """Direction of ``c`` from the per-point depth ratios ``y_goal / y_cur`` (docs/theory.md section 3)."""
     yg, yc = goal_n[:, 1], cur_n[:, 1]
     ok = (np.abs(yg) >= min_abs_y) & (np.abs(yc) >= min_abs_y) & (yg * yc > 0)
     if ok.sum() < 2:
@@ -775,7 +775,7 @@ def wall_normals(pose: RelativePose, min_t_over_d: float = 0.05) -> tuple[float,
 
 # ============================================================================ 2 points
 def two_point_candidates(goal_n: np.ndarray, cur_n: np.ndarray, min_abs_y: float = 0.02) -> list[tuple[float, float, float]]:
-    """All planar poses ``(theta, x_s, z_s)`` that 2 matches allow (THESIS.md section 3 [C]).
+    """All planar poses ``(theta, x_s, z_s)`` that 2 matches allow (docs/theory.md section 3).
 
     Each point's vertical coordinate gives its depth ratio ``s_i = y_goal / y_cur`` (constant camera
     height), so for a heading ``theta`` the point yields ``q_i = c / Z_goal,i`` in closed form; both
@@ -828,7 +828,7 @@ class _Track:
 
 
 class TwoPointTracker:
-    """Dynamic 2-point mode (THESIS.md section 3, "Dynamic AS: 2 points suffice").
+    """Dynamic 2-point mode (docs/theory.md section 3, "Dynamic AS: 2 points suffice").
 
     With 2 matches the static problem has up to two solutions (:func:`two_point_candidates`). The
     tracker follows each solution over time (one-to-one association on the heading predicted with the

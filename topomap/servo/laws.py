@@ -1,12 +1,12 @@
-"""Pose-regulation laws for appearance servoing (THESIS.md section 3), as pure functions.
+"""Pose-regulation laws for appearance servoing (docs/theory.md section 3), as pure functions.
 
 Every law takes the scaled pose of the vehicle in the goal frame, ``(x_s, z_s, theta) = (x/lambda,
-z/lambda, theta)`` (THESIS.md section 1 convention: ``x`` forward, ``z`` left, ``theta``
+z/lambda, theta)`` (docs/theory.md section 1 convention: ``x`` forward, ``z`` left, ``theta``
 counter-clockwise), the configuration, the integral state and the control period, and returns a
 :class:`~topomap.motion.Command` and the new integral state. Nothing is stored between calls.
 
 The gains assume ``lambda = cfg.nominal_scale_m``; when it is off, the unknown scale only multiplies
-the loop gains (THESIS.md section 3). ``cfg.compensate=False`` gives the nominal laws: the
+the loop gains (docs/theory.md section 3). ``cfg.compensate=False`` gives the nominal laws: the
 disturbance estimate ``d_omega_hat`` is ignored and there is no integral action.
 """
 
@@ -55,11 +55,11 @@ class LawState:
 
 
 def aicardi_coordinates(x_s: float, z_s: float, theta: float) -> tuple[float, float, float]:
-    """Aicardi's ``(e, alpha, theta_A)`` from the scaled pose (THESIS.md section 1, eq. 1.9).
+    """Aicardi's ``(e, alpha, theta_A)`` from the scaled pose (docs/theory.md section 1, eq. 1.9).
 
     ``e = rho``, ``alpha = beta = phi - theta + pi`` (bearing of the goal from the vehicle) and
     ``theta_A = phi + pi`` (direction of the goal from the vehicle, in the goal frame), both wrapped.
-    THESIS.md pairs theta_A with phi; the shift by pi makes the law arrive driving forward along the
+    docs/theory.md pairs theta_A with phi; the shift by pi makes the law arrive driving forward along the
     goal heading (with theta_A = phi it would arrive facing backwards). ``theta_A`` has the same
     dynamics as ``phi``, so the Lyapunov argument is unchanged.
     """
@@ -84,7 +84,7 @@ def aicardi_command(
     mu_hat: float = 0.0,
     v_extra: float = 0.0,
 ) -> Command:
-    """Aicardi 1995 pose regulation, THESIS.md section 3.
+    """Aicardi 1995 pose regulation, docs/theory.md section 3.
 
     ``v = gamma cos(alpha) e``, ``omega = k alpha + r (sin(alpha)/alpha)(alpha + h theta_A) - d_omega_hat``
     where ``r`` is the effective forward speed over the distance. Nominal law (``kappa_hat=None``):
@@ -143,7 +143,7 @@ def unicycle_law(
     (``alpha = pi``). Inside ``dock_radius_m`` (estimated, ``lambda_0 rho_s``) the bearing of the goal
     is undefined at the scale of the measurement noise, so the vehicle aligns its heading:
     ``omega = -k_theta theta - d_omega_hat`` while ``v = k_p eps`` regulates the along-track error.
-    Integral action on ``eps`` (``compensate``) learns the forward disturbance (THESIS.md section 3:
+    Integral action on ``eps`` (``compensate``) learns the forward disturbance (docs/theory.md section 3:
     "needs integral or adaptive action"). It runs while aligning, and within ``integral_zone_m``
     when the distance has not improved by ``stall_progress_m`` for ``stall_time_s`` (the vehicle is
     held off by a forward disturbance); otherwise it is held (and still applied): conditional
@@ -196,7 +196,7 @@ def omni_law(
     *,
     d_omega_hat: float = 0.0,
 ) -> tuple[Command, LawState]:
-    """Omnidirectional proportional-integral regulation, THESIS.md section 3.
+    """Omnidirectional proportional-integral regulation, docs/theory.md section 3.
 
     ``u_lin = -R(theta)^T lambda_0 (k_p p_s + k_i integral(p_s))``, ``omega = -k_theta theta - d_omega_hat``;
     closed loop ``p' = -(lambda_0/lambda) (k_p p + k_i integral(p)) + R d_lin``: the scale is a positive

@@ -1,9 +1,9 @@
-"""Disturbance observer for appearance servoing (THESIS.md section 2 "Observer", section 3).
+"""Disturbance observer for appearance servoing (docs/theory.md section 2 "Observer", section 3).
 
 Input: the relative pose reconstructed from the images at each control step and the command applied
 over the previous step. Images give the relative heading ``theta`` without scale and the position only
 up to the scale ``lambda``; the actuators add unknown disturbances ``u_eff = (1 - slip) u + d``
-(THESIS.md eq. 1.7-1.8). What this makes observable, and what is estimated here:
+(docs/theory.md eq. 1.7-1.8). What this makes observable, and what is estimated here:
 
 * ``d_omega`` — the heading obeys ``theta' = omega + d_omega`` with no scale involved, so a Kalman
   filter on ``(theta, d_omega)`` (random-walk disturbance) estimates it: a linear observer, the
@@ -11,7 +11,7 @@ up to the scale ``lambda``; the actuators add unknown disturbances ``u_eff = (1 
   Multiplicative slip on the turn rate shows up as a slowly varying part of ``d_omega``.
 * the scaled effective velocity ``nu = (u_eff)_lin / lambda`` — from consecutive scaled positions,
   modelled as ``nu = kappa u_lin + mu``: ``kappa = (1 - slip) / lambda`` and ``mu = d_lin / lambda``
-  cannot be separated from the scale (the scale direction of THESIS.md section 2), but ``kappa``
+  cannot be separated from the scale (the scale direction of docs/theory.md section 2), but ``kappa``
   gives the observable ratio ``r = (v + d_v) / e`` of the scale-free law. A Kalman filter over the
   parameters ``(kappa, mu_f, mu_h)``.
 

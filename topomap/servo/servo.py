@@ -1,4 +1,4 @@
-"""``AppearanceServo``: matched points in, velocity command out (THESIS.md section 3).
+"""``AppearanceServo``: matched points in, velocity command out (docs/theory.md section 3).
 
 One control step chains the three parts of :mod:`topomap.servo`:
 

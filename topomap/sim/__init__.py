@@ -1,4 +1,4 @@
-"""The simulator: textured indoor worlds, a camera-carrying vehicle with unknown input disturbances (THESIS.md section 1).
+"""The simulator: textured indoor worlds, a camera-carrying vehicle with unknown input disturbances (docs/theory.md section 1).
 
 * :mod:`~topomap.sim.world` — floor plans (corridors, junctions, rooms, loops) from a seed, JSON files;
 * :mod:`~topomap.sim.textures` — wall photographs and procedural patterns;

@@ -1,4 +1,4 @@
-"""Poses on the floor plan and the geometry of the vehicle-mounted camera (THESIS.md section 1).
+"""Poses on the floor plan and the geometry of the vehicle-mounted camera (docs/theory.md section 1).
 
 World points are ``(x, z, h)``: the floor-plan coordinates ``x, z`` [m] (x to the right, z upwards
 in a plan drawing) and the height ``h`` above the floor [m]. A pose ``(x, z, theta)`` puts the

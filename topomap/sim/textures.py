@@ -307,7 +307,7 @@ def _ceiling(rng: np.random.Generator) -> np.ndarray:
     return img
 
 
-# Office walls (the thesis' office, THESIS.md section 4): plain paint with few features. A paint
+# Office walls (the thesis' office, docs/theory.md section 4): plain paint with few features. A paint
 # texture is nearly uniform on purpose — real painted walls give local features almost nothing.
 def _paint_colour(rng: np.random.Generator) -> np.ndarray:
     tints = ((236, 234, 226), (228, 230, 232), (240, 236, 222), (222, 226, 214), (234, 226, 220))

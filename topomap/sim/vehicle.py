@@ -1,6 +1,6 @@
 """Vehicle kinematics with unknown input disturbances, integrated exactly, and wall collisions.
 
-THESIS.md section 1, eq. 1.7-1.8: ``xi' = G(theta) (u + d)`` with ``xi = (x, z, theta)``,
+docs/theory.md section 1, eq. 1.7-1.8: ``xi' = G(theta) (u + d)`` with ``xi = (x, z, theta)``,
 ``u = (v_f, v_h, omega)`` the command, ``d = (d_f, d_h, d_omega)`` the unknown disturbance and
 ``G(theta) = [[cos, -sin, 0], [sin, cos, 0], [0, 0, 1]]``. A unicycle has ``v_h = d_h = 0``.
 
@@ -210,7 +210,7 @@ class VehicleConfig:
 def arc_step(pose: np.ndarray, v: np.ndarray, h: float) -> np.ndarray:
     """Exact solution of ``xi' = G(theta) v`` over ``h`` seconds for a constant body velocity ``v`` (3,).
 
-    THESIS.md eq. 1.7: with ``w = v[2]`` the heading turns by ``w h`` and the displacement is
+    docs/theory.md eq. 1.7: with ``w = v[2]`` the heading turns by ``w h`` and the displacement is
     ``R(theta) [[S, -C], [C, S]] (v_f, v_h)`` with ``S = sin(w h)/w``, ``C = (1 - cos(w h))/w``
     (written with ``np.sinc`` so that ``w -> 0`` is exact too).
     """

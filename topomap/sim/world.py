@@ -1,6 +1,6 @@
 """Indoor worlds: floor plans of corridors, junctions and rooms with textured walls, and named routes.
 
-Floor-plan convention (THESIS.md section 1, :mod:`topomap.motion`): points are ``(x, z)`` in metres
+Floor-plan convention (docs/theory.md section 1, :mod:`topomap.motion`): points are ``(x, z)`` in metres
 on the floor, drawn with x to the right and z upwards; heights are metres above the floor. Every
 wall runs from the floor to the ceiling (``wall_height_m``); only its free side is drawn, which is
 the *left* side of the segment ``(x0, z0) -> (x1, z1)``.
@@ -101,7 +101,7 @@ class Rect:
 
 @dataclass(frozen=True)
 class Marker:
-    """A small coloured ball at a known position (a THESIS.md 'marker' landmark).
+    """A small coloured ball at a known position (a docs/theory.md 'marker' landmark).
 
     ``x, z`` on the floor plan and ``height_m`` above the floor [m]; ``radius_m`` [m]; ``color`` RGB 0-255.
     """
@@ -688,7 +688,7 @@ def _assign_textures(rng: np.random.Generator, panels, pool: list[str], style: s
 
 # ---------------------------------------------------------------------- styles and presets
 #: Wall styles: name -> (share of panels showing a photograph, procedural kinds drawn with repeats
-#: as weights). ``office``: the thesis' office (THESIS.md section 4), mostly plain paint; about one
+#: as weights). ``office``: the thesis' office (docs/theory.md section 4), mostly plain paint; about one
 #: panel in ten carries a poster, one in eight a door, one in five a small fitting.
 WORLD_STYLES: dict[str, tuple[float, tuple[str, ...]]] = {
     "default": (PHOTO_SHARE, _WALL_KINDS),
