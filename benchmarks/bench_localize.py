@@ -55,7 +55,10 @@ from topomap.evaluate import evaluate, pr_curve
 from topomap.features import extract
 from topomap.groundtruth import read_correspondences, same_name
 from topomap.images import open_sequence, to_working_resolution
+from topomap.config import LocalizeConfig
+from topomap.images import to_gray_u8
 from topomap.localize import Localizer, SequenceLocalizer
+from topomap.photometric import PHOTOMETRIC_PRESETS, apply_photometric
 from topomap.retrieval import thumbnail_descriptor
 from topomap.store import load_map, save_map
 
@@ -73,6 +76,10 @@ class Row:
     r100: float
     ms: float
     note: str = ""
+    declared: float | None = None  # topomap only: fraction declared `localized`
+    declared_right: float | None = None
+    precision: float | None = None  # of the declared
+    ece: float | None = None
 
 
 def score_ranked(name: str, level: str, ranked: list[list], confidence: np.ndarray, good: list[set], ms: float,
@@ -212,9 +219,10 @@ def seqslam(ref_imgs, query_imgs, size, ds: int = 10, window: int = 10,
 
 
 # ----------------------------------------------------------------------------- topomap
-def run_topomap(m, query_names, query_imgs, truth, sequence: bool) -> tuple[object, float, float, str]:
+def run_topomap(m, query_names, query_imgs, truth, sequence: bool, descriptor: str = "auto"
+                ) -> tuple[object, float, float, str]:
     """(EvalResult, ms per query in total, ms of it preparing (features, thumbnail), descriptor mode)."""
-    loc = Localizer(m)
+    loc = Localizer(m, LocalizeConfig(descriptor=descriptor))
     t0 = time.perf_counter()
     prepared = [loc.prepare(img) for img in query_imgs]
     t_prep = time.perf_counter() - t0
@@ -231,20 +239,28 @@ def run_topomap(m, query_names, query_imgs, truth, sequence: bool) -> tuple[obje
 
 def topomap_row(name, res, ms, ms_prep, mode) -> Row:
     return Row(name, "node", dict(res.recall_at), res.auc, res.recall_at_100_precision, ms,
-               f"descriptor {mode}; {ms_prep:.1f} ms of it preparing (resize + features + thumbnail)")
+               f"descriptor {mode}; {ms_prep:.1f} ms of it preparing (resize + features + descriptors); "
+               f"confidences {'calibrated' if res.calibrated else 'raw'}",
+               res.declared, res.declared_right, res.declared_precision, res.ece)
+
+
+def _opt(x: float | None, width: int) -> str:
+    return f"{x:{width}.3f}" if x is not None else f"{'-':>{width}}"
 
 
 def print_table(title: str, rows: list[Row], refs: dict[str, str]) -> None:
     """The table; ``refs``: short label -> baseline method whose frame-level Recall@1 is the ratio's unit."""
     base = {k: next((r for r in rows if r.method == n and r.level == "frame"), None) for k, n in refs.items()}
     print(f"\n{title}")
-    head = f"{'method':<27}{'level':<7}{'R@1':>7}{'R@5':>7}{'R@10':>7}{'AUC':>7}{'R@100P':>8}{'ms/query':>10}"
+    head = (f"{'method':<27}{'level':<7}{'top-1':>7}{'R@5':>7}{'R@10':>7}{'AUC':>7}{'R@100P':>8}{'decl':>7}"
+            f"{'decl&ok':>8}{'prec':>7}{'ECE':>7}{'ms/query':>10}")
     head += "".join(f"{'R@1/' + k:>13}" for k in refs)
     print(head)
     print("-" * len(head))
     for r in rows:
         line = (f"{r.method:<27}{r.level:<7}{r.recall[1]:7.3f}{r.recall[5]:7.3f}{r.recall[10]:7.3f}{r.auc:7.3f}"
-                f"{r.r100:8.3f}{r.ms:10.1f}")
+                f"{r.r100:8.3f}{_opt(r.declared, 7)}{_opt(r.declared_right, 8)}{_opt(r.precision, 7)}"
+                f"{_opt(r.ece, 7)}{r.ms:10.1f}")
         for k, b in base.items():
             line += f"{(r.recall[1] / b.recall[1]) if b and b.recall[1] > 0 else float('nan'):13.2f}"
         print(line)
@@ -255,7 +271,7 @@ def print_table(title: str, rows: list[Row], refs: dict[str, str]) -> None:
 
 
 # ----------------------------------------------------------------------------- datasets
-def corridor(tmp: Path, with_480: bool) -> None:
+def corridor(tmp: Path, with_480: bool):
     root = DATASETS / "corridor"
     t0 = time.perf_counter()
     m = build_map(root / "ref")
@@ -307,9 +323,10 @@ def corridor(tmp: Path, with_480: bool) -> None:
         rows.append(score_ranked(name, "node", [to_nodes(r, node_of_ref) for r in ranked], conf, good_nodes, ms))
     print_table("corridor (topomap: node level; baselines: frame level, and node level for comparison)", rows,
                 {"exh": "exhaustive ORB native", "exh-p15": "exhaustive ORB native p15", "thumb": "thumbnail SAD 32x24"})
+    return m, q_names, q_imgs, truth
 
 
-def nordland(tmp: Path) -> None:
+def nordland(tmp: Path):
     root = DATASETS / "nordland-64x32"
     t0 = time.perf_counter()
     m = load_map(save_map(build_map(root / "summer"), tmp / "nordland.topomap"))
@@ -333,20 +350,67 @@ def nordland(tmp: Path) -> None:
         rows.append(score_ranked(name, "frame", ranked, conf, good_frames, ms))
     print_table("nordland summer -> winter (one node per frame: node level = frame level)", rows,
                 {"thumb": "thumbnail SAD 32x16", "seqslam": "SeqSLAM 32x16"})
+    return m, q_names, q_imgs, truth
+
+
+def appearance_change(title: str, m, names, images, truth) -> None:
+    """The photometric presets applied to the queries (seeded per query): topomap in both modes."""
+    print(f"\nappearance change, {title}: each preset of topomap.photometric applied to the queries")
+    head = (f"{'condition':<14}{'mode':<10}{'top-1':>7}{'decl':>7}{'decl&ok':>8}{'prec':>7}{'recall/none':>12}"
+            f"{'ECE':>7}{'ms/query':>10}")
+    print(head)
+    print("-" * len(head))
+    base: dict[bool, float] = {}
+    for name, change in PHOTOMETRIC_PRESETS.items():
+        changed = [apply_photometric(to_gray_u8(img), change, np.random.default_rng(k)) for k, img in enumerate(images)]
+        for seq in (False, True):
+            res, ms, _, _ = run_topomap(m, names, changed, truth, seq)
+            base.setdefault(seq, res.declared_right)
+            rel = res.declared_right / base[seq] if base[seq] > 0 else float("nan")
+            print(f"{name:<14}{'sequence' if seq else 'single':<10}{res.recall_at[1]:7.3f}{res.declared:7.3f}"
+                  f"{res.declared_right:8.3f}{res.declared_precision:7.3f}{rel:12.2f}{res.ece:7.3f}{ms:10.1f}")
+    print("  prec = precision of the declared answers (1.000 when none is declared); recall/none = declared&ok "
+          "relative to the unchanged queries")
+
+
+def foreign(maps: dict[str, object]) -> None:
+    """Sequences of places that are not in the map: nothing may be declared `localized`."""
+    sets = {"corridor": DATASETS / "corridor" / "query", "castle": DATASETS / "castle-p30" / "images",
+            "nordland": DATASETS / "nordland-64x32" / "winter"}
+    pairs = [("corridor", "castle"), ("corridor", "nordland"), ("nordland", "corridor")]
+    print("\nforeign sequences (not in the map): declared `localized` and the highest confidence")
+    print(f"{'map':<10}{'queries':<10}{'mode':<10}{'frames':>7}{'declared':>9}{'max conf':>9}")
+    for map_name, q_name in pairs:
+        if map_name not in maps or not sets[q_name].exists():
+            continue
+        imgs = [f.image for f in open_sequence(sets[q_name]) if f.image is not None]
+        loc = Localizer(maps[map_name])
+        for seq in (False, True):
+            filt = SequenceLocalizer(loc) if seq else None
+            res = [filt.update(i) if filt else loc.localize(i) for i in imgs]
+            print(f"{map_name:<10}{q_name:<10}{'sequence' if seq else 'single':<10}{len(res):7d}"
+                  f"{sum(r.localized for r in res):9d}{max(r.confidence for r in res):9.2f}")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--dataset", choices=["corridor", "nordland", "all"], default="all")
     ap.add_argument("--no-exhaustive-480", action="store_true", help="skip the slow 480 px exhaustive baseline")
+    ap.add_argument("--no-conditions", action="store_true", help="skip the appearance-change suite")
     args = ap.parse_args()
     if not DATASETS.exists():
         sys.exit(f"datasets not found under {DATASETS}; set TOPOMAP_SHARED")
     with tempfile.TemporaryDirectory() as tmp:
+        maps, data = {}, {}
         if args.dataset in ("corridor", "all"):
-            corridor(Path(tmp), not args.no_exhaustive_480)
+            data["corridor"] = corridor(Path(tmp), not args.no_exhaustive_480)
         if args.dataset in ("nordland", "all"):
-            nordland(Path(tmp))
+            data["nordland"] = nordland(Path(tmp))
+        for name, (m, names, images, truth) in data.items():
+            maps[name] = m
+            if not args.no_conditions:
+                appearance_change(name, m, names, images, truth)
+        foreign(maps)
 
 
 if __name__ == "__main__":

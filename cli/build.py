@@ -13,7 +13,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 from rich.text import Text
 
-from topomap.build import BuildProgress, build_index, build_map
+from topomap.build import BuildProgress, build_index, build_map, calibrate
+from topomap.calibration import Calibration
 from topomap.camera import load_camera
 from topomap.config import BUILD_PRESETS, build_preset
 from topomap.errors import DatasetError
@@ -79,7 +80,8 @@ def build(
     every: int = typer.Option(1, "--every", help="Use every N-th frame (videos and folders)."),
     append: bool = typer.Option(False, "--append", help="Add this sequence to the existing map, linked by loop closures."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing map file."),
-    no_images: bool = typer.Option(False, "--no-images", help="Do not store keyframe images (maps that only localize and navigate; thumbnails stay)."),
+    no_images: bool = typer.Option(False, "--no-images", help="Do not store keyframe images (maps that only localize and navigate; thumbnails stay; no calibration)."),
+    no_calibration: bool = typer.Option(False, "--no-calibration", help="Skip the self-supervised calibration of localization confidence (faster; confidences stay raw)."),
     image_quality: int = typer.Option(None, "--image-quality", help="JPEG quality of the stored keyframe images, 1..100 [default: the preset's, 40].", metavar="Q"),
     workers: int = typer.Option(None, "--workers", "-j", help="Worker processes for decoding, features and verification [default: every core]; 1 = in this process.", metavar="N"),
     dask: str = typer.Option(None, "--dask", help="'local': run the work on a Dask LocalCluster of --workers processes (needs the 'cluster' extra).", metavar="local"),
@@ -96,6 +98,8 @@ def build(
     config = build_preset(preset)
     if no_images:
         config = dataclasses.replace(config, store_images=False)
+    if no_calibration:
+        config = dataclasses.replace(config, calibration=dataclasses.replace(config.calibration, enabled=False))
     if image_quality is not None:
         config = dataclasses.replace(config, image_quality=image_quality)
     if features is not None:
@@ -115,12 +119,14 @@ def build(
         # --append: the map's write lock is held from reading the map to the commit, so a concurrent
         # `index` or `--append` waits (or is refused with one line) instead of being overwritten
         stack.enter_context(executor)
-        update = stack.enter_context(open_for_update(output)) if append else None
+        # the map's keyframe images are read too: the calibration refit after appending samples them
+        update = stack.enter_context(open_for_update(output, images=True)) if append else None
         base = update.map if update is not None else None
         t0 = time.perf_counter()
         with _progress_bar(as_json) as bar:
             tasks = {"frames": bar.add_task("frames", total=None, info="", unit="frames")}
-            labels = {"index": ("vocabulary", "steps"), "loops": ("loop closure", "nodes")}
+            labels = {"index": ("vocabulary", "steps"), "loops": ("loop closure", "nodes"),
+                      "calibrate": ("calibration", "steps")}
 
             def on_progress(p: BuildProgress) -> None:
                 if p.stage not in tasks:
@@ -192,6 +198,7 @@ def info(
     f = data["features"]
     t.add_row("features", f"{f['kind']}: {f['total']} ({f['per_node_mean']:.0f} per node)")
     t.add_row("index", "yes" if data["index"] else "no (run `topomap index`)")
+    t.add_row("calibration", _calibration_line(m, map_path))
     t.add_row("sequences", "; ".join(str(s) for s in data["sequence_sources"]))
     t.add_row("working size", f"{data['working_size'][0]}x{data['working_size'][1]}")
     t.add_row("schema version", str(version) if version == SCHEMA_VERSION
@@ -262,16 +269,38 @@ def export(
     err_console.print(f"wrote {output}")
 
 
+def _calibration_line(m, map_path: Path) -> str:
+    cal = Calibration.from_meta(m.meta)
+    if cal is None:
+        return f"no: confidences are raw (`topomap index {map_path}` fits one)"
+    f = cal.fitted_for
+    return f"self-supervised, {f.get('samples', '?')} samples ({f.get('right', '?')} right), descriptor {f.get('descriptor', '?')}"
+
+
 @app.command()
-def index(map_path: Path = typer.Argument(..., metavar="MAP", help="Map file.")) -> None:
-    """(Re)build a map's place-recognition index in place (maps built by older versions)."""
-    with open_for_update(map_path) as update:  # the write lock is held from reading to the commit
+def index(
+    map_path: Path = typer.Argument(..., metavar="MAP", help="Map file."),
+    no_calibration: bool = typer.Option(False, "--no-calibration", help="Rebuild the index only; keep confidences raw."),
+) -> None:
+    """(Re)build a map's place-recognition index and refit its confidence calibration, in place."""
+    # the write lock is held from reading to the commit; keyframe images are read for the calibration
+    with open_for_update(map_path, images=not no_calibration) as update:
         m = update.map
         build_index(m)
-        if m.index is None:
+        if m.index is None and not m.arrays:
             fail(f"{map_path} has too few features to index")
+        cal = None
+        if not no_calibration:
+            m.config = dataclasses.replace(m.config, calibration=dataclasses.replace(m.config.calibration, enabled=True))
+            cal = calibrate(m)
         update.commit()
-    console.print(f"indexed {len(m.index)} nodes with {m.index.vocabulary.size} visual words")
+    what = (f"indexed {len(m.index)} nodes with {m.index.vocabulary.size} visual words" if m.index is not None
+            else f"{map_path}: too few features for a bag of words; whole-image descriptors refreshed")
+    console.print(what)
+    if not no_calibration:
+        console.print(f"calibration: {_calibration_line(m, map_path)}" if cal is not None else
+                      f"calibration: none fitted ({len(m.nodes)} nodes, "
+                      f"{sum(n.image is not None for n in m.nodes.values())} keyframe images; see the log)")
 
 
 @app.command()

@@ -71,7 +71,7 @@ def localize(
     descriptor: str = typer.Option("auto", "--descriptor", help=_DESCRIPTOR_HELP),
     top_k: int = typer.Option(10, "--top-k", help="Candidates verified geometrically per query."),
     features: str = typer.Option(None, "--features", help="Expected feature type (must be the map's)."),
-    min_confidence: float = typer.Option(None, "--min-confidence", help="Below this the answer is 'unknown' [default 0.5]."),
+    min_confidence: float = typer.Option(None, "--min-confidence", help="Below this probability the answer is 'unknown' [default 0.9]."),
     as_json: bool = typer.Option(False, "--json", help="Print a JSON list, one entry per query."),
 ) -> None:
     """Find the map node each query image shows (or say it is not in the map)."""
@@ -82,11 +82,13 @@ def localize(
     frames = {n: [f.source for f in m.frames if f.node == n] for n in m.nodes}
     rows = [
         {"query": name, "node": r.node, "frames": frames[r.node], "confidence": r.confidence,
-         "status": r.status.value, "inliers": r.inliers, "candidates": [c.node for c in r.candidates[:5]]}
+         "status": r.status.value, "calibrated": r.calibrated, "inliers": r.inliers,
+         "candidates": [c.node for c in r.candidates[:5]]}
         for name, r in results
     ]
     if as_json:
         print_json(rows)
+        _warn_uncalibrated(loc, map_path)
         return
     t = Table(title=f"{len(rows)} queries against {map_path.name} ({dt * 1000:.0f} ms per query)")
     for col in ("query", "node", "keyframe", "confidence", "status", "inliers"):
@@ -96,6 +98,14 @@ def localize(
         t.add_row(r["query"], str(r["node"]), m.nodes[r["node"]].source, f"{r['confidence']:.2f}",
                   f"[{style}]{r['status']}[/]", str(r["inliers"]))
     console.print(t)
+    _warn_uncalibrated(loc, map_path)
+
+
+def _warn_uncalibrated(loc: Localizer, map_path: Path) -> None:
+    """After the results (a failing run keeps its one error line): say when confidences are raw."""
+    if loc.calibration is None and loc.config.use_calibration:
+        err_console.print(f"[yellow]note:[/] {map_path.name} has no calibration for this descriptor: confidences "
+                          f"are raw scores, not probabilities (`topomap index {map_path}` fits one)")
 
 
 @app.command("eval")
@@ -113,7 +123,7 @@ def eval_(
     plot: Path = typer.Option(None, "--plot", help="Write the precision-recall curve to this PNG."),
     as_json: bool = typer.Option(False, "--json", help="Print the metrics as JSON."),
 ) -> None:
-    """Precision-recall, AUC, Recall@1/5/10 and recall at 100% precision of localization."""
+    """Precision-recall, AUC, Recall@1/5/10, recall at 100% precision, declared answers and calibration error."""
     from topomap.evaluate import evaluate, plot_pr
     from topomap.groundtruth import from_poses, read_correspondences, read_poses, same_name
 
@@ -142,12 +152,16 @@ def eval_(
         plot_pr(res, plot, label=f"topomap {data['mode']} ({loc.mode})")
     if as_json:
         print_json(data)
+        _warn_uncalibrated(loc, map_path)
         return
     t = Table(title=f"{map_path.name}: {res.queries} queries ({data['mode']}, {loc.mode})", show_header=False, box=None)
-    for k in ("recall_at_1", "recall_at_5", "recall_at_10", "auc", "recall_at_100_precision"):
+    for k in ("recall_at_1", "recall_at_5", "recall_at_10", "auc", "recall_at_100_precision", "declared",
+              "declared_right", "declared_precision"):
         t.add_row(k.replace("_", " "), f"{data[k]:.3f}")
+    t.add_row("expected calibration error", f"{res.ece:.3f}" + ("" if res.calibrated else " (raw confidences)"))
     t.add_row("queries with a match", str(res.queries_with_match))
     t.add_row("time", f"{data['ms_per_query']:.1f} ms per query")
     console.print(t)
     if plot is not None:
         err_console.print(f"wrote {plot}")
+    _warn_uncalibrated(loc, map_path)

@@ -208,7 +208,7 @@ def test_ground_truth_naming_frames_not_in_the_map(runner, cli_app, data, tmp_pa
     (["--ground-truth", "{root}/none.csv"], ["does not exist"]),
     (["--ground-truth", "{map_poses}"], ["not a correspondence CSV"]),
     (["--ground-truth", "{gt}", "--plot", "{root}/no/such/folder/pr.png"], ["does not exist", "--plot"]),
-    (["--ground-truth", "{gt}", "--descriptor", "colour"], ["unknown descriptor 'colour'", "auto, bow, fused, thumbnail"]),
+    (["--ground-truth", "{gt}", "--descriptor", "colour"], ["unknown descriptor 'colour'", "auto, bow, fused, hog, thumbnail"]),
 ])
 def test_bad_eval_options(runner, cli_app, data, args, fragments):
     args = [a.format(**data) for a in args]

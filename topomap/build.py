@@ -35,21 +35,22 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from topomap.camera import CameraIntrinsics
 from topomap.config import BuildConfig, FeatureConfig, MatchConfig
-from topomap.errors import ClusterError, ConfigError, DatasetError
+from topomap.errors import CalibrationError, ClusterError, ConfigError, DatasetError
 from topomap.features import Features, detector, extract
 from topomap.graph import Edge, EdgeKind, FrameRecord, Node, TopoMap
 from topomap.images import ImageSequence, open_sequence, read_image, to_working_resolution, working_size
 from topomap.matching import Verification, verify
 from topomap.parallel import Executor, InlineExecutor
-from topomap.retrieval import BowIndex, Vocabulary, thumbnail_descriptor, vocabulary_size
+from topomap.calibration import CALIBRATION_KEY, Calibration
+from topomap.self_supervision import calibrate_map
+from topomap.retrieval import BowIndex, GlobalDescriptors, Vocabulary, make_thumbnail, thumbnail_descriptor, vocabulary_size
 
 __all__ = ["BuildProgress", "FrameTask", "PreparedFrame", "build_map", "build_index", "prepare_frame",
-           "descriptor_size", "make_thumbnail", "teach_world_record", "TEACH_WORLD_KEY"]
+           "calibrate", "descriptor_size", "index_global_descriptors", "make_thumbnail", "teach_world_record", "TEACH_WORLD_KEY"]
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +64,7 @@ MIN_IMAGE_PX = 32
 
 @dataclass(frozen=True)
 class BuildProgress:
-    """Reported to ``on_progress`` during a build. ``stage``: ``frames`` | ``loops`` | ``index``."""
+    """Reported to ``on_progress`` during a build. ``stage``: ``frames`` | ``index`` | ``loops`` | ``calibrate``."""
 
     stage: str
     done: int
@@ -78,12 +79,6 @@ def descriptor_size(width: int, height: int) -> tuple[int, int]:
     return DESCRIPTOR_WIDTH, h
 
 
-def make_thumbnail(image: np.ndarray, longest_px: int) -> np.ndarray:
-    h, w = image.shape
-    s = longest_px / max(h, w)
-    if s >= 1:
-        return image.copy()
-    return cv2.resize(image, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
 
 
 # ============================================================================= stage: sources
@@ -419,6 +414,7 @@ def build_map(
     new_ids = [n for n in sorted(tmap.nodes) if n >= first_node]
     build_index(tmap, on_progress, executor=executor)
     loops = _close_loops(tmap, new_ids, config, on_progress, executor=executor)
+    calibrate(tmap, on_progress)
     tmap.sequences.append(
         {
             "source": str(seq.source),
@@ -498,6 +494,7 @@ def build_index(tmap: TopoMap, on_progress: Callable[[BuildProgress], None] | No
     hold almost no features gets no index (``None``).
     """
     _report(on_progress, "index", 0, 1, tmap)
+    index_global_descriptors(tmap)
     feats = {n.id: n.features for n in tmap.nodes.values()}
     desc = [f.descriptors for f in feats.values() if len(f)]
     if sum(len(d) for d in desc) < 64:
@@ -514,6 +511,32 @@ def build_index(tmap: TopoMap, on_progress: Callable[[BuildProgress], None] | No
     tmap.index = BowIndex.build(voc, feats)
     _report(on_progress, "index", 1, 1, tmap)
     return tmap.index
+
+
+def calibrate(tmap: TopoMap, on_progress: Callable[[BuildProgress], None] | None = None) -> Calibration | None:
+    """Fit the map's localization calibration (:func:`topomap.self_supervision.calibrate_map`) when its
+    config asks for one; a map that cannot be calibrated keeps none (logged) and localizes with raw
+    confidences."""
+    cfg = tmap.config.calibration
+    tmap.meta.pop(CALIBRATION_KEY, None)  # a calibration of the map before this build is stale
+    if not cfg.enabled or len(tmap.nodes) < cfg.min_nodes:
+        return None
+    _report(on_progress, "calibrate", 0, 1, tmap)
+    try:
+        cal = calibrate_map(tmap, queries=cfg.queries, seed=tmap.config.seed)
+    except CalibrationError as e:
+        log.warning("%s", e)
+        return None
+    _report(on_progress, "calibrate", 1, 1, tmap)
+    return cal
+
+
+def index_global_descriptors(tmap: TopoMap) -> GlobalDescriptors:
+    """The whole-image (HOG) descriptor of every node from its thumbnail, kept in the map's arrays."""
+    g = GlobalDescriptors.from_thumbnails({n.id: n.thumbnail for n in tmap.nodes.values()})
+    tmap.arrays.update(g.to_arrays())
+    tmap.meta["global_descriptor"] = g.to_meta()
+    return g
 
 
 # ============================================================================= stage: loops

@@ -89,6 +89,21 @@ IMAGE_FORMATS = {"jpeg": "lossy, quality BuildConfig.image_quality", "png": "los
 
 
 @dataclass(frozen=True)
+class CalibrationConfig:
+    """Self-supervised calibration of localization confidence at build / index time
+    (:mod:`topomap.self_supervision`): ``queries`` keyframes give four samples each; maps with fewer
+    than ``min_nodes`` nodes are left uncalibrated (too few samples to fit on)."""
+
+    enabled: bool = True
+    queries: int = 60
+    min_nodes: int = 30
+
+    def __post_init__(self) -> None:
+        if self.queries < 10 or self.min_nodes < 10:
+            raise ConfigError("calibration queries and min_nodes must be at least 10")
+
+
+@dataclass(frozen=True)
 class BuildConfig:
     """Image sequence -> keyframes -> edges (see :mod:`topomap.build`)."""
 
@@ -120,7 +135,8 @@ class BuildConfig:
     image_format: str = "jpeg"
     image_quality: int = 40  # JPEG quality of the keyframe images, 1..100
     thumbnail_quality: int = 85  # JPEG quality of the thumbnails, 1..100
-    seed: int = 0  # every random choice (vocabulary k-means, RANSAC) derives from this
+    seed: int = 0  # every random choice (vocabulary k-means, RANSAC, calibration samples) derives from this
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
 
     def __post_init__(self) -> None:
         if self.keyframe_min_inliers < self.match.min_inliers:
@@ -173,7 +189,11 @@ class LocalizeConfig:
     verify_max_iters: int = 1000
     inlier_weight: float = 0.3  # score per verified inlier beyond chance (single frame) [z-units]
     beta: float = 0.4  # sharpness of the softmax turning scores into probabilities [1/z-unit]
-    min_confidence: float = 0.5  # probability on the answer (and neighbours) below which it is "unknown"
+    # Below min_confidence an answer is "unknown". On a calibrated map (topomap.calibration) the
+    # confidence is the estimated probability that the answer is right, so 0.9 keeps the precision of
+    # declared answers at about 0.95 (their mean probability); uncalibrated, it is the raw softmax mass.
+    min_confidence: float = 0.9
+    use_calibration: bool = True  # use the map's calibration when it has one fitted for this scoring
     # temporal filter (sequence mode): states are (node, speed along the map's sequence chain)
     max_speed_nodes: float = 1.5  # fastest motion along a chain [nodes/frame], both directions
     speed_step_nodes: float = 0.25  # resolution of the speed states [nodes/frame]
@@ -189,6 +209,9 @@ class LocalizeConfig:
     elsewhere_state: bool = True
     verified_in_map: float = 0.3  # P(best node verifies | in the map), cautious
     verified_elsewhere: float = 0.01  # P(best node verifies | elsewhere): perceptual aliasing
+    # Appearance-only maps weigh "in the map" against "elsewhere" by how well each frame follows the
+    # motion model (SequenceLocalizer); one frame moves the odds by at most this factor.
+    max_frame_ratio: float = 10.0
     leave_probability: float = 0.02  # per frame, from the map to elsewhere
     enter_probability: float = 0.02  # per frame, from elsewhere back into the map
 
@@ -207,6 +230,8 @@ class LocalizeConfig:
                 raise ConfigError(f"{name} must lie in [0, 1)")
         if not 0.0 < self.verified_elsewhere < self.verified_in_map < 1.0:
             raise ConfigError("need 0 < verified_elsewhere < verified_in_map < 1")
+        if self.max_frame_ratio < 1.0:
+            raise ConfigError("max_frame_ratio must be >= 1")
         if self.beta <= 0 or self.speed_step_nodes <= 0 or self.max_speed_nodes < 0:
             raise ConfigError("beta and speed_step_nodes must be positive, max_speed_nodes >= 0")
 

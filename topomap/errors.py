@@ -22,6 +22,7 @@ __all__ = [
     "IndexMissingError",
     "MissingExtraError",
     "ClusterError",
+    "CalibrationError",
     "unknown_choice",
 ]
 
@@ -63,6 +64,10 @@ class IndexMissingError(TopomapError):
 
 class MissingExtraError(TopomapError):
     """A feature needs an optional extra that is not installed (``pip install 'appearance-topomap[bags]'``...)."""
+
+
+class CalibrationError(TopomapError):
+    """A map cannot be calibrated (no keyframe images, too few nodes, samples all right or all wrong)."""
 
 
 class ClusterError(TopomapError):

@@ -17,6 +17,7 @@ import numpy as np
 
 from topomap.errors import DatasetError
 from topomap.graph import TopoMap
+from topomap.calibration import expected_calibration_error, reliability
 from topomap.groundtruth import GroundTruth
 from topomap.localize import Localization
 
@@ -43,6 +44,11 @@ class EvalResult:
     recall_at: dict[int, float]
     auc: float
     recall_at_100_precision: float
+    declared: float  # fraction of the queries declared `localized`
+    declared_right: float  # fraction of the queries with a match declared `localized` and right
+    declared_precision: float  # right among the declared (1.0 when none is declared)
+    ece: float  # expected calibration error of the confidences (10 bins)
+    calibrated: bool  # whether the confidences are the map's calibrated probabilities
     precision: np.ndarray = field(repr=False)
     recall: np.ndarray = field(repr=False)
     thresholds: np.ndarray = field(repr=False)
@@ -57,6 +63,11 @@ class EvalResult:
             "recall_at_10": self.recall_at.get(10),
             "auc": self.auc,
             "recall_at_100_precision": self.recall_at_100_precision,
+            "declared": self.declared,
+            "declared_right": self.declared_right,
+            "declared_precision": self.declared_precision,
+            "ece": self.ece,
+            "calibrated": self.calibrated,
         }
         if per_query:
             d["per_query"] = [o.__dict__ for o in self.outcomes]
@@ -104,18 +115,42 @@ def evaluate(results: Sequence[tuple[str, Localization]], truth: GroundTruth, tm
     precision, recall, thresholds = pr_curve(conf, ok, with_match)
     auc = float(np.trapezoid(precision, recall)) if len(recall) > 1 else 0.0
     at_full = recall[precision >= 1.0 - 1e-12]
+    declared = np.array([o.status == "localized" for o in outcomes], bool)
+    n_declared = int(declared.sum())
     return EvalResult(len(outcomes), with_match, recall_at, auc, float(at_full.max()) if len(at_full) else 0.0,
+                      n_declared / max(1, len(outcomes)), int((declared & ok).sum()) / denom,
+                      int((declared & ok).sum()) / n_declared if n_declared else 1.0,
+                      expected_calibration_error(conf, ok), bool(results) and all(r.calibrated for _, r in results),
                       precision, recall, thresholds, outcomes)
 
 
 def plot_pr(result: EvalResult, path: str | Path, label: str = "topomap", title: str | None = None) -> Path:
-    """Write the precision-recall curve as a PNG."""
+    """Write the precision-recall curve and, beside it, the reliability diagram as a PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(5, 4.2), dpi=110)
+    fig, (ax, rel) = plt.subplots(1, 2, figsize=(10, 4.2), dpi=110)
+    conf = np.array([o.confidence for o in result.outcomes])
+    ok = np.array([o.correct for o in result.outcomes])
+    mean_c, frac, counts = reliability(conf, ok)
+    edges = np.linspace(0, 1, len(counts) + 1)
+    used = counts > 0
+    rel.bar(edges[:-1][used], frac[used], width=1 / len(counts), align="edge", alpha=0.6, edgecolor="k",
+            label="fraction right")
+    rel.plot([0, 1], [0, 1], "k--", lw=1, label="calibrated")
+    rel.plot(mean_c[used], frac[used], "o", color="C3", label="bin: mean confidence, fraction right")
+    for x, n in zip(edges[:-1][used], counts[used]):
+        rel.annotate(str(int(n)), (x + 0.5 / len(counts), 0.02), ha="center", fontsize=7)
+    kind = "calibrated probability" if result.calibrated else "raw confidence (uncalibrated)"
+    rel.set_xlabel(kind)
+    rel.set_ylabel("fraction of answers right")
+    rel.set_xlim(0, 1)
+    rel.set_ylim(0, 1.02)
+    rel.grid(alpha=0.3)
+    rel.legend(loc="upper left", fontsize=8)
+    rel.set_title(f"reliability: ECE {result.ece:.3f}; declared {result.declared:.2f}, precision {result.declared_precision:.2f}")
     ax.plot(result.recall, result.precision, "-", lw=2, label=f"{label} (AUC {result.auc:.3f})")
     ax.set_xlabel("recall")
     ax.set_ylabel("precision")

@@ -33,6 +33,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import logging
+import math
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -40,13 +41,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from topomap.calibration import Calibration, ImageQuality, image_quality, logit, quality_evidence
 from topomap.config import LocalizeConfig
 from topomap.errors import ConfigError, IndexMissingError, unknown_choice
 from topomap.features import Features, extract
 from topomap.graph import TopoMap
 from topomap.images import to_gray_u8, to_working_resolution
 from topomap.matching import Verification, match_descriptors_grouped, verify
-from topomap.retrieval import Vocabulary, sad, thumbnail_descriptor
+from topomap.retrieval import GlobalDescriptors, Vocabulary, hog_descriptor, make_thumbnail, sad, thumbnail_descriptor
 
 __all__ = [
     "DESCRIPTORS",
@@ -63,13 +65,16 @@ log = logging.getLogger(__name__)
 #: ``descriptor="auto"`` uses the keypoint index only when keyframes typically hold this many
 #: features: fewer words than this make a bag of words noise (Nordland 64x32: ~26 per image).
 MIN_FEATURES_FOR_BOW = 100
+#: Candidates a Localization lists at least (Recall@10 reads them), whatever ``shortlist_k``.
+MIN_CANDIDATES = 10
 
 #: Appearance signals a localizer can rank nodes by (``--descriptor``).
 DESCRIPTORS = {
-    "auto": f"fused when keyframes hold >= {MIN_FEATURES_FOR_BOW} features and the map has an index, else thumbnail",
-    "fused": "bag-of-words + patch-normalised thumbnail",
+    "auto": f"fused when keyframes hold >= {MIN_FEATURES_FOR_BOW} features and the map has an index, else hog",
+    "fused": "bag-of-words + gradient orientations (HOG) + patch-normalised thumbnail",
     "bow": "bag-of-words of local features (needs the map's index)",
-    "thumbnail": "patch-normalised thumbnail (whole image; works where keypoints fail)",
+    "hog": "whole-image gradient orientations (survive light and season changes; works where keypoints fail)",
+    "thumbnail": "patch-normalised thumbnail (SeqSLAM's whole-image descriptor)",
 }
 
 
@@ -96,7 +101,10 @@ class Localization:
     ``node``: best node (also given when ``status`` is ``unknown``, as the best guess);
     ``confidence``: probability mass on the node and its neighbours, in [0, 1];
     ``candidates``: the ranking, best first (Recall@N reads it); ``verification``: the geometric
-    check against the answered node (inlier matches, usable by a servo), or ``None``.
+    check against the answered node (inlier matches, usable by a servo), or ``None``;
+    ``calibrated``: whether ``confidence`` is the map's calibrated probability that ``node`` is
+    right (else the raw softmax mass, which ranks answers but overstates them);
+    ``evidence``: the numbers the confidence was computed from (:mod:`topomap.calibration`).
     """
 
     node: int
@@ -105,6 +113,8 @@ class Localization:
     inliers: int
     candidates: tuple[Candidate, ...]
     verification: Verification | None = None
+    calibrated: bool = False
+    evidence: dict = field(default_factory=dict, compare=False)
 
     @property
     def localized(self) -> bool:
@@ -116,13 +126,16 @@ class Query:
     """A query image prepared for the map: ``image`` (H, W) uint8 at the map's working
     resolution, its local ``features``, whole-image ``descriptor`` (D,) float32 and, when the map
     has a vocabulary, ``words`` (F,) int64: the word of each feature in ``vocabulary`` (a query
-    prepared for another map is quantised again, not misread)."""
+    prepared for another map is quantised again, not misread); ``global_descriptor`` (G,) float32:
+    the HOG of its thumbnail (empty when the localizer does not use it)."""
 
     image: np.ndarray
     features: Features
     descriptor: np.ndarray
     words: np.ndarray | None = None
     vocabulary: Vocabulary | None = None
+    global_descriptor: np.ndarray | None = None
+    quality: ImageQuality | None = None
 
 
 def _top_rows(x: np.ndarray, m: int) -> np.ndarray:
@@ -166,15 +179,17 @@ class Localizer:
         mode = self.config.descriptor
         if mode == "auto":
             typical = float(np.median([len(n.features) for n in tmap.nodes.values()]))
-            mode = "fused" if (tmap.index is not None and typical >= MIN_FEATURES_FOR_BOW) else "thumbnail"
+            mode = "fused" if (tmap.index is not None and typical >= MIN_FEATURES_FOR_BOW) else "hog"
         if mode in ("fused", "bow") and tmap.index is None:
             raise IndexMissingError(
                 "this map has no place-recognition index; build it with `topomap index MAP` "
-                "(or use --descriptor thumbnail)"
+                "(or use --descriptor hog)"
             )
         self.mode = mode
         self.use_bow = mode in ("fused", "bow")
         self.use_thumbnail = mode in ("fused", "thumbnail")
+        self.use_hog = mode in ("fused", "hog")
+        self.global_descriptors = _global_descriptors(tmap, self.node_ids) if self.use_hog else None
         if self.use_bow and not np.array_equal(np.sort(tmap.index.node_ids), self.node_ids):
             raise IndexMissingError("the map's index does not cover its nodes; rebuild it with `topomap index MAP`")
         self._bow_rows = np.array([tmap.index.row_of(n) for n in self.node_ids]) if self.use_bow else None
@@ -195,6 +210,7 @@ class Localizer:
         self._node_words: OrderedDict[int, np.ndarray] = OrderedDict()  # maps indexed without feature words
         self._verify_config = dataclasses.replace(tmap.config.match, ransac_method=self.config.verify_ransac_method,
                                                   ransac_max_iters=self.config.verify_max_iters)
+        self.calibration = self._usable_calibration() if self.config.use_calibration else None
 
     # ------------------------------------------------------------------ pieces
     def prepare(self, image: np.ndarray, *, words: bool = True) -> Query:
@@ -205,9 +221,13 @@ class Localizer:
         work = to_working_resolution(gray, self.map.working_size)
         feats = extract(work, self.map.config.features)  # verification needs them in every mode
         desc = thumbnail_descriptor(work, self.descriptor_size, self.descriptor_patch) if self.use_thumbnail else np.zeros(0, np.float32)
+        g = None
+        if self.use_hog:  # from the query's thumbnail, exactly as the nodes' were made at build time
+            g = hog_descriptor(make_thumbnail(work, self.map.config.thumbnail_px), self.global_descriptors.size)
         if words and (self.use_bow or self.guided):
-            return Query(work, feats, desc, self._vocabulary.quantize(feats.descriptors), self._vocabulary)
-        return Query(work, feats, desc)
+            return Query(work, feats, desc, self._vocabulary.quantize(feats.descriptors), self._vocabulary, g,
+                         image_quality(work))
+        return Query(work, feats, desc, global_descriptor=g, quality=image_quality(work))
 
     def _query_words(self, q: Query) -> np.ndarray:
         """The query features' words in this map's vocabulary (computed by ``prepare``, else now)."""
@@ -227,6 +247,13 @@ class Localizer:
         score = np.zeros(len(self.node_ids))
         if self.use_bow:
             score += _robust_z(self.map.index.scores(q.features, self._query_words(q))[self._bow_rows].astype(np.float64))
+        if self.use_hog:
+            g = q.global_descriptor
+            if g is None or len(g) != self.global_descriptors.matrix.shape[1]:
+                g = hog_descriptor(make_thumbnail(q.image, self.map.config.thumbnail_px), self.global_descriptors.size)
+            # no hub correction here: standardising by each node's own similarities costs the
+            # corridor's sequence mode (see docs/localization.md), the block-normalised HOG has no hubs to speak of
+            score += _robust_z(self.global_descriptors.similarity(g).astype(np.float64))
         if self.use_thumbnail:
             # fused on a big map: thumbnails only for the bag of words' best nodes (a distance to all
             # of 100k nodes costs ~35 ms); the others get the lowest thumbnail score of those
@@ -293,51 +320,110 @@ class Localizer:
             self._node_words.move_to_end(node)
         return cached
 
-    def total_score(self, q: Query, k: int | None = None) -> tuple[np.ndarray, dict[int, Verification]]:
-        """Appearance score plus the inlier bonus of the verified shortlist."""
+    def total_score(self, q: Query, k: int | None = None, exclude: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, dict[int, Verification]]:
+        """Appearance score plus the inlier bonus of the verified shortlist; rows in ``exclude``
+        score ``-inf`` (self-supervised calibration leaves a keyframe out of its own query)."""
         score = self.appearance(q)
+        if exclude is not None and len(exclude):
+            score[exclude] = -np.inf
         checks = self.verify_candidates(q, score, k)
         chance = self.map.config.match.min_inliers  # inliers up to this level occur between unrelated images
         for r, v in checks.items():
             score[r] += self.config.inlier_weight * max(0, v.inliers - chance)
         return score, checks
 
-    def likelihood(self, score: np.ndarray) -> np.ndarray:
-        """Observation model: softmax weights ``exp(beta * (score - max))``, (N,)."""
-        return np.exp(self.config.beta * (score - score.max()))
+    def likelihood(self, score: np.ndarray, beta: float | None = None) -> np.ndarray:
+        """Observation model: softmax weights ``exp(beta * (score - max))``, (N,); excluded rows 0."""
+        beta = self.config.beta if beta is None else beta
+        top = np.max(score)
+        return np.exp(beta * (score - top)) if np.isfinite(top) else np.ones_like(score)
 
     def neighbourhood_mass(self, p: np.ndarray, row: int) -> float:
         """Probability on node ``row`` and its graph neighbours."""
-        lo, hi = self._adjacency.indptr[row], self._adjacency.indptr[row + 1]
-        return float(p[row] + p[self._adjacency.indices[lo:hi]].sum())
+        return float(p[row] + p[self.neighbour_rows(row)].sum())
 
-    def answer(self, p: np.ndarray, score: np.ndarray, checks: dict[int, Verification], rank_by: np.ndarray) -> Localization:
-        order = _top_rows(rank_by, max(10, self.config.shortlist_k))
+    def neighbour_rows(self, row: int) -> np.ndarray:
+        lo, hi = self._adjacency.indptr[row], self._adjacency.indptr[row + 1]
+        return self._adjacency.indices[lo:hi]
+
+    def evidence(self, q: Query, score: np.ndarray, best: int, mass: float, checks: dict[int, Verification]) -> dict:
+        """What the answer ``best`` rests on (:data:`topomap.calibration.SINGLE_FEATURES`): the margin of
+        its score over the best node outside its neighbourhood [z-units], log(1 + verified inliers),
+        the log-odds of its probability mass, and the query image's quality against the keyframes'."""
+        near = np.zeros(len(score), bool)
+        near[best] = True
+        near[self.neighbour_rows(best)] = True
+        outside = score[~near]
+        outside = outside[np.isfinite(outside)]
+        margin = float(score[best] - outside.max()) if len(outside) else 10.0
+        v = checks.get(best)
+        ev = {"margin": float(np.clip(margin, -10.0, 10.0)), "log_inliers": math.log1p(max(0, v.inliers) if v else 0),
+              "log_odds": logit(mass)}
+        reference = self.calibration.reference if self.calibration else {}
+        ev.update(quality_evidence(q.quality or image_quality(q.image), reference))
+        return ev
+
+    def answer(self, p: np.ndarray, score: np.ndarray, checks: dict[int, Verification], rank_by: np.ndarray,
+               confidence: Callable[[int, float], tuple[float, bool, dict]] | None = None) -> Localization:
+        """The ranking's best node with its confidence: ``confidence(best_row, mass)`` -> (value,
+        calibrated, evidence) when given, else the raw probability mass on the node and its neighbours."""
+        n_cands = max(MIN_CANDIDATES, self.config.shortlist_k)
+        order = _top_rows(rank_by, n_cands)
         best = int(order[0])
-        conf = min(1.0, self.neighbourhood_mass(p, best))
+        mass = min(1.0, self.neighbourhood_mass(p, best))
+        conf, calibrated, ev = (mass, False, {}) if confidence is None else confidence(best, mass)
         cands = tuple(
             Candidate(int(self.node_ids[r]), float(score[r]), checks[r].inliers if r in checks else -1, float(p[r]))
-            for r in order[: max(10, self.config.shortlist_k)]
+            for r in order[:n_cands]
         )
         status = LocalizationStatus.LOCALIZED if conf >= self.config.min_confidence else LocalizationStatus.UNKNOWN
         v = checks.get(best)
-        return Localization(int(self.node_ids[best]), conf, status, v.inliers if v else 0, cands, v)
+        return Localization(int(self.node_ids[best]), conf, status, v.inliers if v else 0, cands, v, calibrated, ev)
 
     # ------------------------------------------------------------------ API
     def localize(self, image: np.ndarray) -> Localization:
         """Global localization of one image (no memory of previous queries)."""
         return self.localize_query(self.prepare(image))
 
-    def localize_query(self, q: Query) -> Localization:
-        score, checks = self.total_score(q)
+    def localize_query(self, q: Query, exclude: Iterable[int] = ()) -> Localization:
+        """Localization of a prepared query; node ids in ``exclude`` are never answered."""
+        ex = np.array([self._row[int(n)] for n in exclude if int(n) in self._row], np.intp)
+        score, checks = self.total_score(q, exclude=ex)
         p = self.likelihood(score)
         p /= p.sum()
-        loc = self.answer(p, score, checks, score)
-        if loc.status is LocalizationStatus.LOCALIZED and loc.inliers < self.map.config.match.min_inliers:
-            # never confidently wrong: one frame whose best node was not verified geometrically (a
-            # query too small for features, or no candidate verified) is not a place recognised
+
+        def confidence(best: int, mass: float) -> tuple[float, bool, dict]:
+            ev = self.evidence(q, score, best, mass, checks)
+            if self.calibration is None:
+                return mass, False, ev
+            return self.calibration.single.probability(ev), True, ev
+
+        loc = self.answer(p, score, checks, score, confidence)
+        verified = loc.verification is not None and loc.verification.inliers >= self.map.config.match.min_inliers
+        if loc.localized and not verified and (self._verifies_keypoints or not loc.calibrated):
+            # never confidently wrong: one frame whose answer did not verify geometrically is not a
+            # place recognised — unless the map cannot verify (too few keypoints) and its calibrated
+            # appearance evidence says so
             loc = dataclasses.replace(loc, status=LocalizationStatus.UNKNOWN)
         return loc
+
+    @property
+    def _verifies_keypoints(self) -> bool:
+        """Whether answers on this map can be verified geometrically (keyframes rich in features)."""
+        return self.use_bow
+
+    def _usable_calibration(self) -> Calibration | None:
+        """The map's calibration when it was fitted for this map and this scoring, else ``None``."""
+        cal = Calibration.from_meta(self.map.meta)
+        if cal is None:
+            return None
+        fitted = cal.fitted_for
+        if fitted.get("descriptor") != self.mode or int(fitted.get("nodes", -1)) != len(self.node_ids):
+            log.warning("the map's calibration was fitted for another map or descriptor; confidences are raw "
+                        "(refit with `topomap index MAP`)")
+            return None
+        return cal
 
     def localize_all(self, images: Iterable[np.ndarray]) -> Iterator[Localization]:
         for img in images:
@@ -367,7 +453,11 @@ class SequenceLocalizer:
         self.belief: np.ndarray | None = None
         self.elsewhere = 0.0
         # appearance-only maps (thumbnail descriptor: keypoints too few to verify) cannot tell
-        self._tells_elsewhere = localizer.config.elsewhere_state and localizer.use_bow
+        # "elsewhere" needs evidence that differs between mapped and unmapped frames: geometric
+        # verification where keyframes carry the features for it, else whether the frames follow the
+        # map's topology (the filter's predictive likelihood, see update_query)
+        self._tells_elsewhere = localizer.config.elsewhere_state
+        self.frame: Localization | None = None  # the last frame's single-frame answer
 
     def reset(self) -> None:
         self._state = None
@@ -405,26 +495,60 @@ class SequenceLocalizer:
     def update(self, image: np.ndarray) -> Localization:
         return self.update_query(self.loc.prepare(image))
 
-    def update_query(self, q: Query) -> Localization:
-        cfg = self.loc.config
+    def update_query(self, q: Query, exclude: Iterable[int] = ()) -> Localization:
+        """Filter one prepared frame; node ids in ``exclude`` get no observation weight (calibration)."""
+        loc, cfg = self.loc, self.loc.config
+        ex = np.array([loc._row[int(n)] for n in exclude if int(n) in loc._row], np.intp)
+        # the frame on its own: its evidence, and (calibrated maps) the probability that it is right
+        s_score, checks = loc.total_score(q, exclude=ex)
+        p1 = loc.likelihood(s_score)
+        p1 /= p1.sum()
+        best1 = int(np.argmax(s_score))
+        ev1 = loc.evidence(q, s_score, best1, min(1.0, loc.neighbourhood_mass(p1, best1)), checks)
+        p_frame = loc.calibration.single.probability(ev1) if loc.calibration else None
+        self.frame = loc.answer(p1, s_score, checks, s_score, lambda b, m: (p_frame if p_frame is not None else m,
+                                                                            p_frame is not None, ev1))
         prior, e = self._predict()
-        # appearance places the camera within the map (if it is in the map) ...
-        score = self.loc.appearance(q, hub_correction=True)
-        post = prior * self.loc.likelihood(score)[:, None]
+        # appearance places the camera within the map (if it is in the map); a noisy or flat frame
+        # (night, fog) says less, so its likelihood is flattened instead of pushing belief anywhere
+        score = loc.appearance(q, hub_correction=True)
+        if len(ex):
+            score[ex] = -np.inf
+        # (contrast lost counts too: an over-exposed frame keeps its noise level but loses the
+        # texture; measured, without it over-exposed corridor frames are declared wrongly 1 time in 4)
+        reliability = 1.0 / (1.0 + ev1["low_snr"] + ev1["contrast_loss"])
+        lik = loc.likelihood(score, cfg.beta * reliability)
+        post = prior * lik[:, None]
         total = post.sum()
         self._state = post / total if total > 0 and np.isfinite(total) else np.full_like(prior, 1.0 / prior.size)
         belief = self._state.sum(axis=1)
         best = int(np.argmax(belief))
-        checks = self.loc.verify_rows(q, [best])
-        # ... and geometry tells the map from elsewhere, where keypoints can be trusted to verify
-        if self._tells_elsewhere and len(q.features) >= MIN_FEATURES_FOR_BOW and best in checks:
-            ok = checks[best].inliers >= self.loc.map.config.match.min_inliers
-            in_map = (1.0 - e) * (cfg.verified_in_map if ok else 1.0 - cfg.verified_in_map)
-            out = e * (cfg.verified_elsewhere if ok else 1.0 - cfg.verified_elsewhere)
-            e = out / (in_map + out)
+        if best not in checks:
+            checks.update(loc.verify_rows(q, [best]))
+        # ... and evidence that differs between mapped and unmapped frames tells the map from elsewhere
+        ratio = None  # P(frame | in the map, the frames before) / P(frame | elsewhere)
+        if not loc.use_bow:
+            # appearance-only maps: a camera in the map sees next what the motion model predicts;
+            # elsewhere its frames resemble a random place. The Bayes factor of the two is the
+            # prior-weighted likelihood over the mean likelihood (1 when the prior says nothing)
+            ratio = float(np.clip(prior.sum(axis=1) @ lik / max(lik.mean(), 1e-300), 1.0 / cfg.max_frame_ratio,
+                                  cfg.max_frame_ratio))
+        elif len(q.features) >= MIN_FEATURES_FOR_BOW and best in checks:
+            ok = checks[best].inliers >= loc.map.config.match.min_inliers
+            r_in, r_out = cfg.verified_in_map, cfg.verified_elsewhere
+            ratio = r_in / r_out if ok else (1.0 - r_in) / (1.0 - r_out)
+        if self._tells_elsewhere and ratio is not None:
+            e = e / (e + (1.0 - e) * ratio)
         self.elsewhere = e
         self.belief = belief * (1.0 - e)
-        return self.loc.answer(self.belief, score, checks, self.belief)
+
+        calibrated = loc.calibration is not None
+        frame_ev = {**ev1, "frame_probability": p_frame, "elsewhere": e}
+
+        def confidence(row: int, mass: float) -> tuple[float, bool, dict]:
+            return mass, calibrated, frame_ev
+
+        return loc.answer(self.belief, score, checks, self.belief, confidence)
 
     def run(self, images: Iterable[np.ndarray]) -> Iterator[Localization]:
         for img in images:
@@ -482,3 +606,14 @@ def _distance_statistics(descriptors: np.ndarray, sample: int = 2000) -> tuple[n
     sd = np.where(np.isfinite(sd) & (sd > 1e-6), sd, 1.0)
     mu = np.where(np.isfinite(mu), mu, 0.0)
     return mu, sd
+
+
+def _global_descriptors(tmap: TopoMap, node_ids: np.ndarray) -> GlobalDescriptors:
+    """The map's stored HOG descriptors in ``node_ids`` order, else computed now from the thumbnails
+    (maps indexed by an older topomap: ~1 ms a node; `topomap index MAP` stores them)."""
+    g = GlobalDescriptors.from_map(tmap.arrays, tmap.meta.get("global_descriptor"))
+    if g is not None and np.array_equal(g.node_ids, node_ids):
+        return g
+    log.info("the map stores no whole-image descriptors for its nodes; computing them (`topomap index MAP` keeps them)")
+    return GlobalDescriptors.from_thumbnails({int(n): tmap.nodes[int(n)].thumbnail for n in node_ids})
+

@@ -29,7 +29,8 @@ import scipy.sparse as sp
 from topomap.errors import MapFormatError
 from topomap.features import Features, detector, hamming
 
-__all__ = ["Vocabulary", "BowIndex", "vocabulary_size", "thumbnail_descriptor", "sad"]
+__all__ = ["Vocabulary", "BowIndex", "GlobalDescriptors", "vocabulary_size", "thumbnail_descriptor", "sad", "hog_descriptor",
+           "hog_size", "make_thumbnail"]
 
 #: Minimum descriptors per visual word when sizing a vocabulary from a map's own descriptors.
 DESCRIPTORS_PER_WORD = 8
@@ -463,6 +464,15 @@ class BowIndex:
             raise MapFormatError(f"map index is incomplete (missing {e.args[0]}); rebuild it with `topomap index MAP`") from None
 
 
+def make_thumbnail(image: np.ndarray, longest_px: int) -> np.ndarray:
+    """``(H, W)`` image reduced (area averaging) so that its longest side is ``longest_px``; smaller ones copied."""
+    h, w = image.shape
+    s = longest_px / max(h, w)
+    if s >= 1:
+        return image.copy()
+    return cv2.resize(image, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
+
+
 def thumbnail_descriptor(image: np.ndarray, size: tuple[int, int] = (32, 24), patch: int = 8) -> np.ndarray:
     """Patch-normalised thumbnail (SeqSLAM): ``(H, W) uint8`` image -> ``(w*h,)`` float32 descriptor.
 
@@ -498,3 +508,85 @@ def sad(query: np.ndarray, refs: np.ndarray, block: int = 1024) -> np.ndarray:
         np.abs(t, out=t)
         out[start : start + len(rows)] = t.mean(axis=1)
     return out
+
+
+# ---------------------------------------------------------------------- gradient-orientation descriptor
+#: Whole-image HOG (Dalal & Triggs 2005): the thumbnail resized to HOG_WIDTH px wide, cells of HOG_CELL
+#: px, blocks of 2x2 cells normalised on their own. Gradient orientations survive illumination and
+#: exposure changes that move every intensity (each block is contrast-normalised), which the bag of
+#: words' keypoints do not; the coarse grid tolerates the few pixels of shift between neighbouring
+#: views. See docs/localization.md for what it adds on the corridor and Nordland.
+HOG_WIDTH = 128
+HOG_CELL = 16
+HOG_BINS = 9
+#: Gaussian blur before the gradients [px]: sensor noise otherwise fills every orientation bin.
+HOG_BLUR_SIGMA = 1.0
+
+
+def hog_size(width: int, height: int) -> tuple[int, int]:
+    """``(w, h)`` the HOG is computed at for images of this aspect: whole cells, at least 2x2 of them."""
+    h = max(2 * HOG_CELL, int(round(HOG_WIDTH * height / max(width, 1) / HOG_CELL)) * HOG_CELL)
+    return HOG_WIDTH, h
+
+
+def hog_descriptor(image: np.ndarray, size: tuple[int, int] | None = None) -> np.ndarray:
+    """Whole-image gradient-orientation descriptor: ``(H, W) uint8`` image -> ``(D,)`` float32, unit L2.
+
+    Compare two descriptors by their dot product (cosine similarity). ``size`` defaults to
+    :func:`hog_size` of the image; every image compared must use the same size.
+    """
+    w, h = size or hog_size(image.shape[1], image.shape[0])
+    t = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA if image.shape[1] >= w else cv2.INTER_LINEAR)
+    t = cv2.GaussianBlur(t, (0, 0), HOG_BLUR_SIGMA)
+    hog = cv2.HOGDescriptor((w, h), (2 * HOG_CELL, 2 * HOG_CELL), (HOG_CELL, HOG_CELL), (HOG_CELL, HOG_CELL), HOG_BINS)
+    d = hog.compute(t).astype(np.float32).ravel()
+    d -= d.mean()  # a flat image (all bins equal after normalisation) then scores ~0 against everything
+    n = float(np.linalg.norm(d))
+    return d / n if n > 1e-9 else d
+
+
+@dataclass(frozen=True)
+class GlobalDescriptors:
+    """Whole-image descriptors of a map's nodes: ``node_ids`` (N,) int64 and ``matrix`` (N, D) float32
+    (rows unit L2) of ``kind`` ``"hog"`` at ``size = (w, h)``. Kept in the map file as float16."""
+
+    kind: str
+    size: tuple[int, int]
+    node_ids: np.ndarray
+    matrix: np.ndarray
+
+    @classmethod
+    def from_thumbnails(cls, thumbnails: dict[int, np.ndarray]) -> GlobalDescriptors:
+        """HOG of each node's stored thumbnail (the map's working images reduced to ``thumbnail_px``)."""
+        ids = np.array(sorted(thumbnails), np.int64)
+        if len(ids) == 0:
+            return cls("hog", (HOG_WIDTH, 2 * HOG_CELL), ids, np.zeros((0, 0), np.float32))
+        first = thumbnails[int(ids[0])]
+        size = hog_size(first.shape[1], first.shape[0])
+        matrix = np.stack([hog_descriptor(thumbnails[int(i)], size) for i in ids])
+        return cls("hog", size, ids, matrix)
+
+    def similarity(self, query: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """Cosine similarity of a query descriptor to every node (or to ``rows``), (N,) float32."""
+        m = self.matrix if rows is None else self.matrix[rows]
+        return m @ np.asarray(query, np.float32)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        return {"global_node_ids": self.node_ids, "global_matrix": self.matrix.astype(np.float16)}
+
+    def to_meta(self) -> dict:
+        return {"kind": self.kind, "size": list(self.size), "cell": HOG_CELL, "bins": HOG_BINS}
+
+    @classmethod
+    def from_map(cls, arrays: dict[str, np.ndarray], meta: dict | None) -> GlobalDescriptors | None:
+        """The stored descriptors, or ``None`` when the map has none or they were made another way."""
+        if not meta or "global_matrix" not in arrays or "global_node_ids" not in arrays:
+            return None
+        if meta.get("kind") != "hog" or meta.get("cell") != HOG_CELL or meta.get("bins") != HOG_BINS:
+            return None
+        ids = np.asarray(arrays["global_node_ids"], np.int64).ravel()
+        matrix = np.asarray(arrays["global_matrix"], np.float32)
+        size = meta.get("size")
+        if matrix.ndim != 2 or len(matrix) != len(ids) or not (isinstance(size, list) and len(size) == 2):
+            raise MapFormatError("the map's global descriptors are malformed; rebuild them with `topomap index MAP`")
+        return cls("hog", (int(size[0]), int(size[1])), ids, matrix)

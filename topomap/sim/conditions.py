@@ -28,10 +28,10 @@ import dataclasses
 import math
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
 
 from topomap.errors import ConfigError, unknown_choice
+from topomap.photometric import Photometric, apply_photometric
 
 __all__ = ["Conditions", "CONDITION_PRESETS", "conditions_preset", "parse_conditions", "apply_conditions",
            "moved_world", "PLAIN_PAINT_KIND"]
@@ -211,52 +211,19 @@ def parse_conditions(spec: str | Conditions | dict | None) -> Conditions:
 
 
 # ---------------------------------------------------------------------- camera
-def _srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
-
-
-def _linear_to_srgb(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-
-
 def apply_conditions(image: np.ndarray, conditions: Conditions | str | None,
                      rng: np.random.Generator | None = None) -> np.ndarray:
     """The camera part of ``conditions`` applied to ``image``: a new ``(H, W, 3)`` or ``(H, W)`` uint8.
 
     Exposure, white balance and vignetting act in linear light (sRGB decoded), then blur, then read
-    noise from ``rng`` (required when ``noise_std > 0``) in the 8-bit domain. Light and moved panels
-    are not image effects (see :meth:`Conditions.renderer_options`, :func:`moved_world`).
+    noise from ``rng`` (required when ``noise_std > 0``) in the 8-bit domain
+    (:func:`topomap.photometric.apply_photometric`). Light and moved panels are not image effects
+    (see :meth:`Conditions.renderer_options`, :func:`moved_world`).
     """
     c = parse_conditions(conditions)
-    img = np.asarray(image)
-    if img.dtype != np.uint8 or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
-        raise ConfigError(f"apply_conditions expects an (H, W, 3) or (H, W) uint8 image, got {img.dtype} {img.shape}")
-    if not c.changes_image:
-        return img.copy()
-    if c.noise_std > 0 and rng is None:
-        raise ConfigError("apply_conditions needs a numpy Generator (rng) for sensor noise")
-    out = img.astype(np.float32) / 255.0
-    if c.exposure_ev != 0 or c.white_balance_rgb != (1.0, 1.0, 1.0) or c.vignetting > 0:
-        lin = _srgb_to_linear(out)
-        gain = np.float32(2.0 ** c.exposure_ev)
-        if img.ndim == 3:
-            lin = lin * (gain * np.asarray(c.white_balance_rgb, np.float32))[None, None, :]
-        else:
-            lin = lin * gain * np.float32(np.mean(c.white_balance_rgb))
-        if c.vignetting > 0:
-            h, w = img.shape[:2]
-            yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-            r2 = ((xx - (w - 1) / 2) ** 2 + (yy - (h - 1) / 2) ** 2) / (((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2)
-            fall = 1.0 - np.float32(c.vignetting) * r2  # cos^4-like falloff, 1 at the centre
-            lin = lin * (fall[..., None] if img.ndim == 3 else fall)
-        out = _linear_to_srgb(lin).astype(np.float32)
-    if c.blur_sigma_px > 0:
-        out = cv2.GaussianBlur(out, (0, 0), float(c.blur_sigma_px), borderType=cv2.BORDER_REFLECT)
-    out = out * 255.0
-    if c.noise_std > 0:
-        out = out + rng.normal(0.0, c.noise_std, out.shape).astype(np.float32)
-    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+    change = Photometric(exposure_ev=c.exposure_ev, white_balance_rgb=c.white_balance_rgb, vignetting=c.vignetting,
+                         blur_sigma_px=c.blur_sigma_px, noise_std=c.noise_std, name=c.name)
+    return apply_photometric(image, change, rng)
 
 
 # ---------------------------------------------------------------------- world

@@ -1,0 +1,184 @@
+"""Self-supervised calibration of a map's localization confidence (``topomap index``, ``topomap build``).
+
+The map's own keyframes are queries whose answers are known. Every query is a keyframe image seen
+from a little aside (:func:`viewpoint_change`) under a random photometric change
+(:func:`topomap.photometric.random_photometric`, from none to about a deep night), in three kinds:
+
+* **nearby** — right when the keyframe's node or a graph neighbour is answered;
+* **left out** — its own node excluded, so right only when a neighbour is answered: a live frame
+  halfway between two keyframes, the hard case;
+* **aliased** — every node within two hops excluded: whatever is answered is a look-alike
+  elsewhere in the map, wrong;
+* **foreign** — mirrored left-right, another place of the same kind (its node and neighbours
+  excluded): every answer is wrong.
+
+The samples fit the single-frame model. Its aliased and foreign answers look like the wrong answers
+of real queries from another traversal (corridor: margin 2.1 vs 2.4 z-units, log-inliers 2.4 vs 2.7);
+its right answers are easier than real ones — what the map's own images cannot show is how hard
+the next traversal will be — so the calibration errs on the side of caution (under-confident; see
+docs/localization.md). The sequence filter's posterior is a probability by construction and is
+not recalibrated; the calibration's image-quality reference lets it flatten the likelihood of noisy
+and washed-out frames (:class:`~topomap.localize.SequenceLocalizer`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import cv2
+import numpy as np
+
+from topomap.calibration import CALIBRATION_KEY, SINGLE_FEATURES, Calibration, Calibrator, image_quality
+from topomap.config import LocalizeConfig
+from topomap.errors import CalibrationError
+from topomap.graph import TopoMap
+from topomap.images import decode_image
+from topomap.localize import Localizer
+from topomap.photometric import apply_photometric, random_photometric
+
+__all__ = ["calibrate_map", "CalibrationSamples", "single_samples", "keyframe_image", "viewpoint_change"]
+
+log = logging.getLogger(__name__)
+
+#: Strongest viewpoint change of a nearby query (see :func:`viewpoint_change`): corners moved by up
+#: to a quarter of the width.
+MAX_VIEW = 3.0
+#: An aliased query excludes every node this many graph hops from its own: the answer is then
+#: another place of the map that looks alike (the corridor's failure), always wrong.
+ALIAS_HOPS = 2
+#: Why no calibration could be fitted is reported with this prefix (``topomap info`` shows it).
+NOT_CALIBRATED = "not calibrated"
+
+
+class CalibrationSamples:
+    """Evidence rows ``x`` (N, F) over ``features``, labels ``y`` (N,) bool and the sample ``kind``s."""
+
+    def __init__(self, features: tuple[str, ...]):
+        self.features = features
+        self.rows: list[list[float]] = []
+        self.labels: list[bool] = []
+        self.kinds: list[str] = []
+
+    def add(self, evidence: dict, right: bool, kind: str) -> None:
+        self.rows.append([float(evidence.get(f, 0.0)) for f in self.features])
+        self.labels.append(bool(right))
+        self.kinds.append(kind)
+
+    @property
+    def x(self) -> np.ndarray:
+        return np.array(self.rows, np.float64).reshape(len(self.rows), len(self.features))
+
+    @property
+    def y(self) -> np.ndarray:
+        return np.array(self.labels, bool)
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+
+def keyframe_image(tmap: TopoMap, node_id: int) -> np.ndarray | None:
+    """The keyframe image of ``node_id`` at the working resolution (decoded from the map), or ``None``."""
+    n = tmap.nodes[node_id]
+    if n.image is not None:
+        return n.image
+    if n.image_data is not None:
+        w, h = tmap.working_size
+        return decode_image(n.image_data, max_pixels=w * h, max_size=(w, h), formats=("PNG", "JPEG"),
+                            what=f"the image of node {node_id}")
+    return None
+
+
+def _closed_neighbourhood(tmap: TopoMap, node_id: int) -> set[int]:
+    return {node_id, *tmap.neighbours(node_id)}
+
+
+def viewpoint_change(image: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:
+    """The image as seen from elsewhere nearby: a random perspective warp whose corners move up to
+    ``strength`` x 8 % of the width (and a shift of as much), borders reflected. A live frame between
+    two keyframes, or of another traversal, looks like this to a whole-image descriptor and to the
+    features; ``strength`` 0 leaves the image as it is."""
+    h, w = image.shape[:2]
+    s = float(max(strength, 0.0))
+    if s == 0.0:
+        return image
+    src = np.float32([[0, 0], [w, 0], [w, h], [0, h]])
+    shift = rng.uniform(-0.08, 0.08, 2) * s * np.array([w, 0.5 * h])
+    dst = src + shift + rng.uniform(-0.08, 0.08, (4, 2)) * s * np.array([w, h])
+    m = cv2.getPerspectiveTransform(src, dst.astype(np.float32))
+    return cv2.warpPerspective(image, m, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
+def _changed(image: np.ndarray, rng: np.random.Generator, light: float, view: float) -> np.ndarray:
+    return apply_photometric(viewpoint_change(image, rng, view), random_photometric(rng, light), rng)
+
+
+def _overlapping(loc: Localizer) -> bool:
+    """Whether neighbouring keyframes show the same place: the build verified its edges with local
+    features (keypoint maps), so a left-out keyframe's neighbours are right answers. Appearance-only
+    maps (one node per place, edges by order alone) get no left-out samples."""
+    return loc.use_bow
+
+
+def _within_hops(tmap: TopoMap, node_id: int, hops: int) -> set[int]:
+    seen, frontier = {node_id}, {node_id}
+    for _ in range(hops):
+        frontier = {m for n in frontier for m in tmap.neighbours(n)} - seen
+        seen |= frontier
+    return seen
+
+
+def single_samples(loc: Localizer, node_ids: list[int], rng: np.random.Generator) -> CalibrationSamples:
+    """Nearby, left-out, aliased and foreign queries of the given keyframes (see the module docstring)."""
+    tmap = loc.map
+    out = CalibrationSamples(SINGLE_FEATURES)
+    overlapping = _overlapping(loc)
+    for nid in node_ids:
+        image = keyframe_image(tmap, nid)
+        neighbours = set(tmap.neighbours(nid))
+        if image is None or not neighbours:
+            continue
+        near = neighbours | {nid}
+        queries = [("nearby", _changed(image, rng, float(rng.random()), float(rng.uniform(0.0, MAX_VIEW))), set(), near)]
+        if overlapping:
+            queries.append(("left out", _changed(image, rng, float(rng.random()), 0.3), {nid}, neighbours))
+        queries += [
+            ("aliased", _changed(image, rng, float(rng.random()), 0.3), _within_hops(tmap, nid, ALIAS_HOPS), set()),
+            ("foreign", np.ascontiguousarray(_changed(image, rng, float(rng.random()), 0.3)[:, ::-1]), near, set()),
+        ]
+        for kind, img, exclude, right in queries:
+            a = loc.localize_query(loc.prepare(img), exclude=exclude)
+            out.add(a.evidence, a.node in right, kind)
+    return out
+
+
+def calibrate_map(tmap: TopoMap, *, queries: int = 60, seed: int = 0, config: LocalizeConfig | None = None
+                  ) -> Calibration:
+    """Fit the map's :class:`~topomap.calibration.Calibration` and store it in ``tmap.meta``.
+
+    ``queries`` keyframes (a seeded sample) give three or four samples each. Raises :class:`CalibrationError` when the map
+    has no keyframe images (``--no-images``) or too few nodes to learn from.
+    """
+    cfg = config or LocalizeConfig()
+    loc = Localizer(tmap, dataclasses.replace(cfg, use_calibration=False))
+    rng = np.random.default_rng(seed)
+    with_images = [n for n in sorted(tmap.nodes) if tmap.nodes[n].image is not None or tmap.nodes[n].image_data is not None]
+    if len(with_images) < 10:
+        raise CalibrationError(f"{NOT_CALIBRATED}: the map needs at least 10 keyframe images to calibrate "
+                           f"(it has {len(with_images)}; maps built with --no-images cannot be calibrated)")
+    chosen = sorted(rng.choice(with_images, min(queries, len(with_images)), replace=False).tolist())
+    qualities = [image_quality(keyframe_image(tmap, n)) for n in chosen]
+    reference = {"snr": float(np.median([q.snr for q in qualities])),
+                 "contrast": float(np.median([q.contrast for q in qualities]))}
+    # evidence of image quality is relative to the map's keyframes: install the reference first
+    loc.calibration = Calibration(Calibrator(SINGLE_FEATURES, (0.0,) * len(SINGLE_FEATURES), 0.0), reference, {})
+    single = single_samples(loc, chosen, rng)
+    if len(single) < 20 or single.y.all() or not single.y.any():
+        raise CalibrationError(f"{NOT_CALIBRATED}: its keyframes gave {len(single)} usable samples, "
+                           f"{int(single.y.sum())} of them right; need both right and wrong answers")
+    single_model = Calibrator.fit(SINGLE_FEATURES, single.x, single.y)
+    fitted_for = {"nodes": len(tmap.nodes), "descriptor": loc.mode, "samples": len(single),
+                  "right": int(single.y.sum()), "seed": seed}
+    cal = Calibration(single_model, reference, fitted_for)
+    tmap.meta[CALIBRATION_KEY] = cal.to_dict()
+    return cal
