@@ -199,7 +199,9 @@ def info(
     t.add_row("features", f"{f['kind']}: {f['total']} ({f['per_node_mean']:.0f} per node)")
     t.add_row("index", "yes" if data["index"] else "no (run `topomap index`)")
     t.add_row("calibration", _calibration_line(m, map_path))
-    t.add_row("sequences", "; ".join(str(s) for s in data["sequence_sources"]))
+    t.add_row("experiences", "; ".join(
+        f"{x['sequence']}: {Path(str(x['source'])).name} ({x['nodes']} nodes"
+        + "".join(f", {n} links to {o}" for o, n in x["links"].items()) + ")" for x in data["experiences"]))
     t.add_row("working size", f"{data['working_size'][0]}x{data['working_size'][1]}")
     t.add_row("schema version", str(version) if version == SCHEMA_VERSION
               else f"{version} (read as {SCHEMA_VERSION}; `topomap upgrade {map_path}` rewrites it)")

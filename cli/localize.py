@@ -82,7 +82,8 @@ def localize(
     frames = {n: [f.source for f in m.frames if f.node == n] for n in m.nodes}
     rows = [
         {"query": name, "node": r.node, "frames": frames[r.node], "confidence": r.confidence,
-         "status": r.status.value, "calibrated": r.calibrated, "inliers": r.inliers,
+         "status": r.status.value, "calibrated": r.calibrated, "experience": r.experience, "place": r.place,
+         "inliers": r.inliers,
          "candidates": [c.node for c in r.candidates[:5]]}
         for name, r in results
     ]

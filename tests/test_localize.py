@@ -395,3 +395,27 @@ def test_fused_on_a_big_map_compares_thumbnails_of_the_bow_best_only(route, seco
         thumb = b - bow_only - hog_only
         assert np.allclose(thumb[rest], thumb[top].min())  # the others: the lowest thumbnail score of the five
         assert few.localize_query(q).node == full.localize_query(q).node
+
+
+# ============================================================================= experiences
+def test_an_appended_experience_is_linked_and_answers_as_one_place(route, tmp_path):
+    """A second traversal under other light, appended: loop closures link it to the first; an answer
+    from either experience names the experience and the shared place."""
+    from topomap.photometric import PHOTOMETRIC_PRESETS, apply_photometric
+
+    dusk = PHOTOMETRIC_PRESETS["dusk"]
+    write_sequence(tmp_path / "dusk", [apply_photometric(route.second_pass(i), dusk, np.random.default_rng(i))
+                                       for i in range(len(XS))])
+    m = build_map(tmp_path / "dusk", base=dataclasses.replace(route.map, nodes=dict(route.map.nodes),
+                                                            edges=dict(route.map.edges), frames=list(route.map.frames),
+                                                            sequences=list(route.map.sequences), meta=dict(route.map.meta),
+                                                            arrays=dict(route.map.arrays)))
+    exp = m.experiences()
+    assert [x["sequence"] for x in exp] == [0, 1] and exp[1]["links"].get(0, 0) >= exp[1]["nodes"] // 2
+    place = m.place_ids()
+    loc = Localizer(m)
+    i = len(XS) // 2
+    a = loc.localize(apply_photometric(route.second_pass(i, seed=9), dusk, np.random.default_rng(99)))
+    assert a.experience in (0, 1) and a.place == place[a.node]
+    linked = [n for n in m.nodes if m.nodes[n].sequence == 1 and place[n] != n]
+    assert linked and all(m.nodes[place[n]].sequence == 0 for n in linked)  # the shared place is the first experience's

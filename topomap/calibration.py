@@ -34,9 +34,9 @@ CALIBRATION_KEY = "calibration"
 EVIDENCE_VERSION = 1
 
 #: Evidence a single-frame answer is judged by (see :meth:`topomap.localize.Localizer.evidence`).
-SINGLE_FEATURES = ("margin", "log_inliers", "log_odds", "low_snr", "contrast_loss")
+SINGLE_FEATURES = ("margin", "log_inliers", "log_odds", "low_snr", "contrast_loss", "clipping")
 #: The direction each feature may act in (+1 raises the probability, -1 lowers it).
-FEATURE_SIGNS = {"margin": 1, "log_inliers": 1, "log_odds": 1, "low_snr": -1, "contrast_loss": -1}
+FEATURE_SIGNS = {"margin": 1, "log_inliers": 1, "log_odds": 1, "low_snr": -1, "contrast_loss": -1, "clipping": -1}
 #: L2 penalty of the fit per sample [1 / weight^2]: a little shrinkage keeps weights finite where
 #: the self-supervised samples separate perfectly.
 _RIDGE = 1e-2
@@ -105,16 +105,24 @@ class Calibrator:
 @dataclass(frozen=True)
 class ImageQuality:
     """``noise``: sensor-noise standard deviation [grey levels] (Immerkaer 1996); ``contrast``: the
-    standard deviation of the image smoothed at 2 px [grey levels] — the signal the noise competes with."""
+    standard deviation of the image smoothed at 2 px [grey levels] — the signal the noise competes
+    with; ``clipped``: the fraction of pixels at the ends of the range (<= 5 or >= 250), where an
+    over- or under-exposed camera has lost the texture."""
 
     noise: float
     contrast: float
+    clipped: float = 0.0
 
     @property
     def snr(self) -> float:
         return self.contrast / max(self.noise, 0.5)
 
 
+#: Grey levels counted as clipped (the ends of an 8-bit range, JPEG ringing included).
+CLIP_LOW, CLIP_HIGH = 5, 250
+#: Added to both clipped fractions before their ratio: a map with no clipped pixel at all does not
+#: turn a query's first few into a large loss.
+CLIP_FLOOR = 0.02
 _IMMERKAER = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
 
 
@@ -122,22 +130,28 @@ def image_quality(image: np.ndarray) -> ImageQuality:
     """Noise and contrast of an ``(H, W)`` uint8 image (fast: two filters)."""
     f = image.astype(np.float32)
     h, w = f.shape
+    clipped = float(np.count_nonzero((image <= CLIP_LOW) | (image >= CLIP_HIGH))) / max(1, image.size)
     if h < 3 or w < 3:
-        return ImageQuality(0.0, float(f.std()))
+        return ImageQuality(0.0, float(f.std()), clipped)
     r = cv2.filter2D(f, -1, _IMMERKAER, borderType=cv2.BORDER_REFLECT)[1:-1, 1:-1]
     noise = math.sqrt(math.pi / 2.0) * float(np.abs(r).sum()) / (6.0 * (w - 2) * (h - 2))
     contrast = float(cv2.GaussianBlur(f, (0, 0), 2.0).std())
-    return ImageQuality(noise, contrast)
+    return ImageQuality(noise, contrast, clipped)
 
 
 def quality_evidence(q: ImageQuality, reference: dict) -> dict[str, float]:
-    """``low_snr`` and ``contrast_loss``: how much worse (log ratio, 0 when not worse) the query's
-    signal-to-noise ratio and contrast are than the map keyframes' median (``reference``)."""
+    """``low_snr``, ``contrast_loss`` and ``clipping``: how much worse (log ratio, 0 when not worse) the
+    query's signal-to-noise ratio, contrast and clipped fraction are than the map keyframes' median
+    (``reference``; an empty reference gives zeros)."""
+    if not reference:
+        return {"low_snr": 0.0, "contrast_loss": 0.0, "clipping": 0.0}
     ref_snr = float(reference.get("snr", 0.0) or 0.0)
     ref_contrast = float(reference.get("contrast", 0.0) or 0.0)
+    ref_clipped = float(reference.get("clipped", 0.0) or 0.0)
     low_snr = max(0.0, math.log(ref_snr / max(q.snr, 1e-3))) if ref_snr > 0 else 0.0
     contrast_loss = max(0.0, math.log(ref_contrast / max(q.contrast, 1e-3))) if ref_contrast > 0 else 0.0
-    return {"low_snr": low_snr, "contrast_loss": contrast_loss}
+    clipping = max(0.0, math.log((q.clipped + CLIP_FLOOR) / (ref_clipped + CLIP_FLOOR)))
+    return {"low_snr": low_snr, "contrast_loss": contrast_loss, "clipping": clipping}
 
 
 @dataclass(frozen=True)

@@ -205,6 +205,30 @@ class TopoMap:
         counts = Counter(e.kind.value for e in self.edges.values())
         return {k.value: counts.get(k.value, 0) for k in EdgeKind}
 
+    def experiences(self) -> list[dict]:
+        """One entry per build run (an *experience* of the place: another day, season, lighting):
+        ``sequence``, ``source``, ``nodes`` and ``links`` = {other sequence: loop edges joining them}."""
+        count = Counter(n.sequence for n in self.nodes.values())
+        links: dict[int, Counter] = {s: Counter() for s in count}
+        for e in self.edges.values():
+            sa, sb = self.nodes[e.a].sequence, self.nodes[e.b].sequence
+            if sa != sb:
+                links[sa][sb] += 1
+                links[sb][sa] += 1
+        return [{"sequence": s, "source": (self.sequences[s].get("source") if s < len(self.sequences) else None),
+                 "nodes": count[s], "links": dict(sorted(links[s].items()))} for s in sorted(count)]
+
+    def place_ids(self) -> dict[int, int]:
+        """Node -> shared place: the smallest node id among the node and the nodes of other experiences
+        it is joined to by an edge, so that a place mapped in several experiences answers as one."""
+        place = {n: n for n in self.nodes}
+        for e in self.edges.values():
+            if self.nodes[e.a].sequence != self.nodes[e.b].sequence:
+                low = min(place[e.a], place[e.b], e.a, e.b)
+                place[e.a] = min(place[e.a], low)
+                place[e.b] = min(place[e.b], low)
+        return place
+
     def summary(self) -> dict:
         """Counts for ``topomap info``: JSON-able."""
         nfeat = [len(n.features) for n in self.nodes.values()]
@@ -221,6 +245,7 @@ class TopoMap:
                 "per_node_mean": float(np.mean(nfeat)) if nfeat else 0.0,
             },
             "sequences": len(self.sequences),
+            "experiences": self.experiences(),
             "working_size": list(self.working_size),
             "camera": {"fx": self.camera.fx, "fy": self.camera.fy, "cx": self.camera.cx, "cy": self.camera.cy, "source": self.camera.source},
             "index": self.index is not None,

@@ -104,7 +104,9 @@ class Localization:
     check against the answered node (inlier matches, usable by a servo), or ``None``;
     ``calibrated``: whether ``confidence`` is the map's calibrated probability that ``node`` is
     right (else the raw softmax mass, which ranks answers but overstates them);
-    ``evidence``: the numbers the confidence was computed from (:mod:`topomap.calibration`).
+    ``evidence``: the numbers the confidence was computed from (:mod:`topomap.calibration`);
+    ``experience``: the build run (sequence) the answered node belongs to; ``place``: the shared
+    place it stands for across experiences (:meth:`~topomap.graph.TopoMap.place_ids`).
     """
 
     node: int
@@ -115,6 +117,8 @@ class Localization:
     verification: Verification | None = None
     calibrated: bool = False
     evidence: dict = field(default_factory=dict, compare=False)
+    experience: int = 0
+    place: int = -1
 
     @property
     def localized(self) -> bool:
@@ -203,6 +207,7 @@ class Localizer:
             self._descriptors = np.stack([tmap.nodes[int(n)].descriptor for n in self.node_ids]).astype(np.float32)
         self._desc_stats: tuple[np.ndarray, np.ndarray] | None = None  # computed on first use (sequence mode)
         self._adjacency = _adjacency(tmap, self.node_ids, self._row)
+        self._place = tmap.place_ids()
         # guided matching: groups = vocabulary-tree nodes at the deepest level with <= match_groups nodes
         self._vocabulary = tmap.index.vocabulary if tmap.index is not None else None
         self.guided = self.config.guided_matching and self._vocabulary is not None
@@ -379,7 +384,9 @@ class Localizer:
         )
         status = LocalizationStatus.LOCALIZED if conf >= self.config.min_confidence else LocalizationStatus.UNKNOWN
         v = checks.get(best)
-        return Localization(int(self.node_ids[best]), conf, status, v.inliers if v else 0, cands, v, calibrated, ev)
+        node = int(self.node_ids[best])
+        return Localization(node, conf, status, v.inliers if v else 0, cands, v, calibrated, ev,
+                            self.map.nodes[node].sequence, self._place.get(node, node))
 
     # ------------------------------------------------------------------ API
     def localize(self, image: np.ndarray) -> Localization:
@@ -401,17 +408,13 @@ class Localizer:
 
         loc = self.answer(p, score, checks, score, confidence)
         verified = loc.verification is not None and loc.verification.inliers >= self.map.config.match.min_inliers
-        if loc.localized and not verified and (self._verifies_keypoints or not loc.calibrated):
+        if loc.localized and not verified:
             # never confidently wrong: one frame whose answer did not verify geometrically is not a
-            # place recognised — unless the map cannot verify (too few keypoints) and its calibrated
-            # appearance evidence says so
+            # place recognised, however probable its appearance makes it (measured: a calibrated
+            # appearance-only answer declared a corridor frame to be in the Nordland map at 0.97);
+            # on maps without the keypoints to verify, the sequence filter is what can declare
             loc = dataclasses.replace(loc, status=LocalizationStatus.UNKNOWN)
         return loc
-
-    @property
-    def _verifies_keypoints(self) -> bool:
-        """Whether answers on this map can be verified geometrically (keyframes rich in features)."""
-        return self.use_bow
 
     def _usable_calibration(self) -> Calibration | None:
         """The map's calibration when it was fitted for this map and this scoring, else ``None``."""
@@ -514,9 +517,9 @@ class SequenceLocalizer:
         score = loc.appearance(q, hub_correction=True)
         if len(ex):
             score[ex] = -np.inf
-        # (contrast lost counts too: an over-exposed frame keeps its noise level but loses the
-        # texture; measured, without it over-exposed corridor frames are declared wrongly 1 time in 4)
-        reliability = 1.0 / (1.0 + ev1["low_snr"] + ev1["contrast_loss"])
+        # (contrast lost and pixels clipped count too: an over-exposed frame keeps its noise level and
+        # contrast but loses the texture of its bright half; docs/localization.md has the figures)
+        reliability = 1.0 / (1.0 + ev1["low_snr"] + ev1["contrast_loss"] + ev1["clipping"])
         lik = loc.likelihood(score, cfg.beta * reliability)
         post = prior * lik[:, None]
         total = post.sum()

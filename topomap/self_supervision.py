@@ -169,7 +169,8 @@ def calibrate_map(tmap: TopoMap, *, queries: int = 60, seed: int = 0, config: Lo
     chosen = sorted(rng.choice(with_images, min(queries, len(with_images)), replace=False).tolist())
     qualities = [image_quality(keyframe_image(tmap, n)) for n in chosen]
     reference = {"snr": float(np.median([q.snr for q in qualities])),
-                 "contrast": float(np.median([q.contrast for q in qualities]))}
+                 "contrast": float(np.median([q.contrast for q in qualities])),
+                 "clipped": float(np.median([q.clipped for q in qualities]))}
     # evidence of image quality is relative to the map's keyframes: install the reference first
     loc.calibration = Calibration(Calibrator(SINGLE_FEATURES, (0.0,) * len(SINGLE_FEATURES), 0.0), reference, {})
     single = single_samples(loc, chosen, rng)
