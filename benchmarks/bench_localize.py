@@ -1,4 +1,4 @@
-"""Benchmark: localization accuracy and speed against baselines computed in the same run (issue 3).
+"""Benchmark: localization accuracy, trust and speed against baselines computed in the same run (issues 3, 15).
 
 Corridor (map from ``ref/``, queries ``query/``, ``ground_truth.csv``: query i matches ref i-2..i+2):
 
@@ -31,6 +31,14 @@ Recall@1 as a ratio of the exhaustive-native and the thumbnail baselines.
 Nordland 64x32 (summer map, winter queries, same file name = same place; one node per frame, so
 node and frame level coincide): topomap sequence with the automatically chosen whole-image
 descriptor, topomap single frame, the thumbnail baseline (32x16: the images are 2:1) and SeqSLAM.
+
+For topomap the table adds what a user sees at the default ``min_confidence``: the fraction
+declared ``localized`` (decl), declared and right (decl&ok), the precision of the declared (prec)
+and the expected calibration error (ECE) of the confidences (the maps are calibrated by
+``build_map``). Then, unless ``--no-conditions``: the appearance-change suite (each preset of
+:mod:`topomap.photometric` applied to the queries, seeded per query; both modes; recall relative to
+the unchanged queries), and foreign sequences (castle and Nordland against the corridor map, the
+corridor against the Nordland map), where nothing may be declared.
 
 Run: ``python benchmarks/bench_localize.py [--dataset corridor|nordland|all] [--no-exhaustive-480]``
 (about 5 min on 2 cores, most of it the exhaustive baselines with more features: 2 x 12321 image pairs;

@@ -157,6 +157,13 @@ def _top_rows(x: np.ndarray, m: int) -> np.ndarray:
     return rows[np.argsort(-x[rows], kind="stable")[:m]]
 
 
+def _spread(z: np.ndarray, rows: np.ndarray, n: int) -> np.ndarray:
+    """Scores of ``rows`` placed in an (n,) vector whose other entries get the lowest of them."""
+    full = np.full(n, z.min() if len(z) else 0.0)
+    full[rows] = z
+    return full
+
+
 def _robust_z(x: np.ndarray) -> np.ndarray:
     """(x - median) / (1.4826 MAD), with a floor on the scale so near-constant scores stay ~0."""
     if len(x) == 0:
@@ -252,19 +259,20 @@ class Localizer:
         score = np.zeros(len(self.node_ids))
         if self.use_bow:
             score += _robust_z(self.map.index.scores(q.features, self._query_words(q))[self._bow_rows].astype(np.float64))
+        # fused on a big map: whole-image descriptors only for the bag of words' best nodes (a
+        # thumbnail distance to all of 100k nodes costs ~35 ms); the others get the lowest score of those
+        rows = None
+        if self.use_bow and len(score) > self.config.thumbnail_candidates:
+            rows = _top_rows(score, self.config.thumbnail_candidates)
         if self.use_hog:
             g = q.global_descriptor
             if g is None or len(g) != self.global_descriptors.matrix.shape[1]:
                 g = hog_descriptor(make_thumbnail(q.image, self.map.config.thumbnail_px), self.global_descriptors.size)
             # no hub correction here: standardising by each node's own similarities costs the
-            # corridor's sequence mode (see docs/localization.md), the block-normalised HOG has no hubs to speak of
-            score += _robust_z(self.global_descriptors.similarity(g).astype(np.float64))
+            # corridor's sequence mode (see docs/localization.md)
+            z = _robust_z(self.global_descriptors.similarity(g, rows).astype(np.float64))
+            score += z if rows is None else _spread(z, rows, len(score))
         if self.use_thumbnail:
-            # fused on a big map: thumbnails only for the bag of words' best nodes (a distance to all
-            # of 100k nodes costs ~35 ms); the others get the lowest thumbnail score of those
-            rows = None
-            if self.use_bow and len(score) > self.config.thumbnail_candidates:
-                rows = _top_rows(score, self.config.thumbnail_candidates)
             d = sad(q.descriptor, self._descriptors if rows is None else self._descriptors[rows]).astype(np.float64)
             if hub_correction:
                 if self._desc_stats is None:
@@ -272,12 +280,7 @@ class Localizer:
                 mu, sd = self._desc_stats
                 d = (d - mu) / sd if rows is None else (d - mu[rows]) / sd[rows]
             z = _robust_z(-d)
-            if rows is None:
-                score += z
-            else:
-                full = np.full(len(score), z.min())
-                full[rows] = z
-                score += full
+            score += z if rows is None else _spread(z, rows, len(score))
         return score
 
     def verify_candidates(self, q: Query, score: np.ndarray, k: int | None = None) -> dict[int, Verification]:

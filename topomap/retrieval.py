@@ -548,7 +548,7 @@ def hog_descriptor(image: np.ndarray, size: tuple[int, int] | None = None) -> np
 @dataclass(frozen=True)
 class GlobalDescriptors:
     """Whole-image descriptors of a map's nodes: ``node_ids`` (N,) int64 and ``matrix`` (N, D) float32
-    (rows unit L2) of ``kind`` ``"hog"`` at ``size = (w, h)``. Kept in the map file as float16."""
+    or, loaded from a map file, float16 (rows unit L2) of ``kind`` ``"hog"`` at ``size = (w, h)``."""
 
     kind: str
     size: tuple[int, int]
@@ -569,7 +569,7 @@ class GlobalDescriptors:
     def similarity(self, query: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """Cosine similarity of a query descriptor to every node (or to ``rows``), (N,) float32."""
         m = self.matrix if rows is None else self.matrix[rows]
-        return m @ np.asarray(query, np.float32)
+        return m.astype(np.float32, copy=False) @ np.asarray(query, np.float32)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         return {"global_node_ids": self.node_ids, "global_matrix": self.matrix.astype(np.float16)}
@@ -585,7 +585,7 @@ class GlobalDescriptors:
         if meta.get("kind") != "hog" or meta.get("cell") != HOG_CELL or meta.get("bins") != HOG_BINS:
             return None
         ids = np.asarray(arrays["global_node_ids"], np.int64).ravel()
-        matrix = np.asarray(arrays["global_matrix"], np.float32)
+        matrix = np.asarray(arrays["global_matrix"])  # float16 as stored: half the memory; rows cast when compared
         size = meta.get("size")
         if matrix.ndim != 2 or len(matrix) != len(ids) or not (isinstance(size, list) and len(size) == 2):
             raise MapFormatError("the map's global descriptors are malformed; rebuild them with `topomap index MAP`")
