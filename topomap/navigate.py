@@ -292,7 +292,7 @@ class Navigator:
             final = i == len(nodes) - 1
             image, q = self._look()
             v = self._match(q, sub)
-            use = v.inlier_matches if v.inliers >= self.map.config.match.min_inliers else v.matches
+            use = v.inlier_matches if v.verified else v.matches
             cur_px, goal_px = q.features.keypoints[use.ia], self.map.nodes[sub].features.keypoints[use.ib]
             s = self.servo.step(cur_px, goal_px, self.camera, cfg.control_period_s, self._last_command,
                                 goal_camera=self.map.camera)
@@ -406,7 +406,7 @@ class Navigator:
             fa, fb = self.map.nodes[a].features, self.map.nodes[b].features
             v = verify(fa, fb, self.map.config.match)
             pair = None
-            if v.inliers >= self.map.config.match.min_inliers:
+            if v.verified:
                 cur, dst = fa.keypoints[v.inlier_matches.ia], fb.keypoints[v.inlier_matches.ib]
                 pair = (cur, dst, relative_pose(cur, dst, self.map.camera, self.servo.config.geometry))
             self._pair_pose[(a, b)] = pair
@@ -426,7 +426,7 @@ class Navigator:
         close (``arrive_descriptor_fraction`` of the distance between the keyframe and its neighbours)."""
         cfg = self.config
         bound = cfg.arrive_image_error if flow_bound is None else flow_bound
-        if v.inliers < self.map.config.match.min_inliers or v.flow_px >= bound * self.map.working_size[0]:
+        if not v.verified or v.flow_px >= bound * self.map.working_size[0]:
             return False
         goal_desc = self.map.nodes[node].descriptor
         if goal_desc is None or q.descriptor.size != goal_desc.size:
