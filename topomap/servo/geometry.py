@@ -71,7 +71,7 @@ import numpy as np
 from topomap.camera import CameraIntrinsics
 from topomap.config import RelativePoseConfig
 from topomap.errors import ConfigError, unknown_choice
-from topomap.motion import Command
+from topomap.motion import Command, wrap_angle
 
 __all__ = [
     "PoseStatus",
@@ -94,7 +94,6 @@ __all__ = [
     "relative_pose_normalized",
     "two_point_candidates",
     "TwoPointTracker",
-    "wrap_angle",
 ]
 
 log = logging.getLogger(__name__)
@@ -136,11 +135,6 @@ def scale_convention(name: str | ScaleConvention) -> ScaleConvention:
         return ScaleConvention(str(name).lower())
     except ValueError:
         raise unknown_choice("scale convention", name, [s.value for s in ScaleConvention]) from None
-
-
-def wrap_angle(a):
-    """Angle(s) wrapped to [-pi, pi)."""
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi if np.ndim(a) else (float(a) + math.pi) % (2 * math.pi) - math.pi
 
 
 @dataclass(frozen=True)

@@ -26,8 +26,8 @@ import numpy as np
 
 from topomap.camera import CameraIntrinsics
 from topomap.errors import ConfigError, DatasetError
-from topomap.motion import Command
-from topomap.sim.geometry import CAMERA_HEIGHT_M, wrap_angle
+from topomap.motion import Command, wrap_angle
+from topomap.sim.geometry import CAMERA_HEIGHT_M
 from topomap.sim.conditions import Conditions, parse_conditions
 from topomap.sim.simulator import Simulator, route_start
 from topomap.sim.world import Route, World
