@@ -46,7 +46,7 @@ from topomap.graph import Edge, EdgeKind, FrameRecord, Node, TopoMap
 from topomap.images import ImageSequence, open_sequence, read_image, to_working_resolution, working_size
 from topomap.matching import Verification, verify
 from topomap.parallel import Executor, InlineExecutor
-from topomap.retrieval import BowIndex, Vocabulary, thumbnail_descriptor, vocabulary_size
+from topomap.retrieval import THUMBNAIL_PATCH, THUMBNAIL_SIZE, BowIndex, Vocabulary, thumbnail_descriptor, vocabulary_size
 
 __all__ = ["BuildProgress", "FrameTask", "PreparedFrame", "build_map", "build_index", "prepare_frame",
            "descriptor_size", "make_thumbnail", "teach_world_record", "TEACH_WORLD_KEY"]
@@ -54,11 +54,13 @@ __all__ = ["BuildProgress", "FrameTask", "PreparedFrame", "build_map", "build_in
 log = logging.getLogger(__name__)
 
 #: Width of the whole-image (patch-normalised thumbnail) descriptor [px]; height follows the aspect.
-DESCRIPTOR_WIDTH = 32
-DESCRIPTOR_PATCH = 8
+DESCRIPTOR_WIDTH = THUMBNAIL_SIZE[0]
+DESCRIPTOR_PATCH = THUMBNAIL_PATCH
 #: Frames with a side shorter than this are skipped: neither keypoints nor the whole-image
 #: descriptor (DESCRIPTOR_WIDTH px wide) carry information below it [px].
 MIN_IMAGE_PX = 32
+#: A map whose keyframes hold fewer descriptors than this in all gets no vocabulary index.
+MIN_INDEX_DESCRIPTORS = 64
 
 
 @dataclass(frozen=True)
@@ -500,7 +502,7 @@ def build_index(tmap: TopoMap, on_progress: Callable[[BuildProgress], None] | No
     _report(on_progress, "index", 0, 1, tmap)
     feats = {n.id: n.features for n in tmap.nodes.values()}
     desc = [f.descriptors for f in feats.values() if len(f)]
-    if sum(len(d) for d in desc) < 64:
+    if sum(len(d) for d in desc) < MIN_INDEX_DESCRIPTORS:
         tmap.index = None
         return None
     cfg = tmap.config

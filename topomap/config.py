@@ -531,11 +531,12 @@ class NavigateConfig:
     max_replans: int = 8
     scan_turn_rps: float = 0.5  # turning rate while scanning for a place to localize [rad/s]
     scan_every_s: float = 0.6  # localize attempts while scanning [s]
-    time_budget_s_per_hop: float = 30.0  # the whole navigation may last 60 s + this per route hop [s]
+    time_budget_base_s: float = 60.0  # the whole navigation may last this [s] ...
+    time_budget_s_per_hop: float = 30.0  # ... plus this per route hop [s] (a re-plan restarts the count)
 
     def __post_init__(self) -> None:
         for name in ("control_period_s", "switch_distance_m", "switch_heading_deg", "settle_heading_deg", "subgoal_timeout_s", "scan_turn_rps", "scan_every_s",
-                     "time_budget_s_per_hop"):
+                     "time_budget_base_s", "time_budget_s_per_hop"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"navigate {name} must be positive")
         if not 0 < self.arrive_descriptor_fraction < 1:

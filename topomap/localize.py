@@ -46,7 +46,7 @@ from topomap.features import Features, extract
 from topomap.graph import TopoMap
 from topomap.images import to_gray_u8, to_working_resolution
 from topomap.matching import Verification, match_descriptors_grouped, verify
-from topomap.retrieval import Vocabulary, sad, thumbnail_descriptor
+from topomap.retrieval import THUMBNAIL_PATCH, THUMBNAIL_SIZE, Vocabulary, sad, thumbnail_descriptor
 
 __all__ = [
     "DESCRIPTORS",
@@ -63,6 +63,10 @@ log = logging.getLogger(__name__)
 #: ``descriptor="auto"`` uses the keypoint index only when keyframes typically hold this many
 #: features: fewer words than this make a bag of words noise (Nordland 64x32: ~26 per image).
 MIN_FEATURES_FOR_BOW = 100
+#: Nodes whose vocabulary words are kept quantised (maps indexed before words were stored) [nodes].
+WORD_CACHE_NODES = 4096
+#: A localization lists at least this many candidates, whatever the verified shortlist's size.
+MIN_CANDIDATES = 10
 
 #: Appearance signals a localizer can rank nodes by (``--descriptor``).
 DESCRIPTORS = {
@@ -179,8 +183,8 @@ class Localizer:
             raise IndexMissingError("the map's index does not cover its nodes; rebuild it with `topomap index MAP`")
         self._bow_rows = np.array([tmap.index.row_of(n) for n in self.node_ids]) if self.use_bow else None
         desc_meta = tmap.meta.get("descriptor") or {}
-        self.descriptor_size = tuple(desc_meta.get("size", (32, 24)))
-        self.descriptor_patch = int(desc_meta.get("patch", 8))
+        self.descriptor_size = tuple(desc_meta.get("size", THUMBNAIL_SIZE))
+        self.descriptor_patch = int(desc_meta.get("patch", THUMBNAIL_PATCH))
         if self.use_thumbnail:
             missing = [int(n) for n in self.node_ids if tmap.nodes[int(n)].descriptor is None]
             if missing:
@@ -287,7 +291,7 @@ class Localizer:
         cached = self._node_words.get(node)
         if cached is None or len(cached) != len(f):
             cached = self._node_words[node] = self._vocabulary.quantize(f.descriptors)
-            if len(self._node_words) > 4096:
+            if len(self._node_words) > WORD_CACHE_NODES:
                 self._node_words.popitem(last=False)
         else:
             self._node_words.move_to_end(node)
@@ -312,12 +316,12 @@ class Localizer:
         return float(p[row] + p[self._adjacency.indices[lo:hi]].sum())
 
     def answer(self, p: np.ndarray, score: np.ndarray, checks: dict[int, Verification], rank_by: np.ndarray) -> Localization:
-        order = _top_rows(rank_by, max(10, self.config.shortlist_k))
+        order = _top_rows(rank_by, max(MIN_CANDIDATES, self.config.shortlist_k))
         best = int(order[0])
         conf = min(1.0, self.neighbourhood_mass(p, best))
         cands = tuple(
             Candidate(int(self.node_ids[r]), float(score[r]), checks[r].inliers if r in checks else -1, float(p[r]))
-            for r in order[: max(10, self.config.shortlist_k)]
+            for r in order[: max(MIN_CANDIDATES, self.config.shortlist_k)]
         )
         status = LocalizationStatus.LOCALIZED if conf >= self.config.min_confidence else LocalizationStatus.UNKNOWN
         v = checks.get(best)

@@ -62,6 +62,13 @@ __all__ = ["RobotLike", "NavStatus", "EventKind", "NavEvent", "NavOutcome", "Nav
 
 log = logging.getLogger(__name__)
 
+#: A waypoint's undocking radius is at least this multiple of its (wide) docking radius.
+WAYPOINT_UNDOCK_FACTOR = 1.7
+#: The goal's metric scale stays within this factor of the nominal scale (either way).
+SCALE_CLIP_FACTOR = 3.0
+#: The settle window counts only when at least this fraction of its steps has a pose estimate.
+SETTLE_MIN_VALID_FRACTION = 0.8
+
 
 class RobotLike(Protocol):
     """What the navigator needs from a robot: images, intrinsics, and a way to move (optionally a
@@ -167,7 +174,7 @@ class Navigator:
         # Waypoints need no precise docking: inside switch_distance_m the servo only turns to the
         # subgoal's heading (at the teach run's corners consecutive nodes differ by a turn).
         dock = max(base.dock_radius_m, self.config.switch_distance_m)
-        self._waypoint_servo = {"dock_radius_m": dock, "undock_radius_m": max(base.undock_radius_m, 1.7 * dock)}
+        self._waypoint_servo = {"dock_radius_m": dock, "undock_radius_m": max(base.undock_radius_m, WAYPOINT_UNDOCK_FACTOR * dock)}
         self._goal_servo = {"dock_radius_m": base.dock_radius_m, "undock_radius_m": base.undock_radius_m}
         self.localizer = localizer or Localizer(tmap, localize_config or LocalizeConfig())
         self.planner = Planner(tmap, plan_config or PlanConfig())
@@ -257,7 +264,7 @@ class Navigator:
             out.route = tuple(route.nodes)
             yield NavEvent(EventKind.PLANNED, self._time, f"route of {route.hops} hops: {list(route.nodes)}",
                            subgoal=route.nodes[0], route=tuple(route.nodes))
-            budget = 60.0 + self.config.time_budget_s_per_hop * max(1, route.hops)
+            budget = self.config.time_budget_base_s + self.config.time_budget_s_per_hop * max(1, route.hops)
             yield from self._follow(route, goal, budget)
         except _Failed as f:
             self._move(STOP)
@@ -354,7 +361,7 @@ class Navigator:
                 self._hold()
                 yield from self._localize()
                 new = self._plan(self._here, goal)
-                budget_s = max(budget_s, self._time + 60.0 + cfg.time_budget_s_per_hop * max(1, new.hops))
+                budget_s = max(budget_s, self._time + cfg.time_budget_base_s + cfg.time_budget_s_per_hop * max(1, new.hops))
                 nodes, i = list(new.nodes), 0
                 out.route = tuple(nodes)
                 lost = converged_streak = false_arrival = 0
@@ -394,7 +401,7 @@ class Navigator:
             scale = None
             if scales:
                 nominal = self.servo.config.nominal_scale_m
-                scale = float(np.clip(np.median(scales), nominal / 3.0, 3.0 * nominal))
+                scale = float(np.clip(np.median(scales), nominal / SCALE_CLIP_FACTOR, SCALE_CLIP_FACTOR * nominal))
             self._geometry[node] = (tuple(normals), scale)
         return self._geometry[node]
 
@@ -475,7 +482,7 @@ class Navigator:
             return False
         window = np.array([h[1:] for h in history if h[0] >= now - window_s])
         ok = np.isfinite(window).all(axis=1)
-        if ok.mean() < 0.8:
+        if ok.mean() < SETTLE_MIN_VALID_FRACTION:
             return False
         dist, head = window[ok, 0], np.abs(window[ok, 1])
         half = len(dist) // 2

@@ -35,6 +35,9 @@ __all__ = ["ServoStatus", "ServoOutput", "AppearanceServo"]
 
 log = logging.getLogger(__name__)
 
+#: While blind (holding or turning toward the goal) speeds stay below this fraction of max_speed_mps.
+BLIND_SPEED_FRACTION = 0.3
+
 
 class ServoStatus(str, enum.Enum):
     """What the servo did in one step."""
@@ -179,7 +182,7 @@ class AppearanceServo:
         if cmd is STOP or not math.isfinite(est.theta) or abs(est.theta) < math.radians(cfg.heading_tol_deg):
             return cmd
         turn = Command(cmd.v_f, cmd.v_h, -cfg.k_theta * est.theta - est.d_omega).clipped(
-            0.3 * cfg.max_speed_mps, cfg.max_turn_rps)
+            BLIND_SPEED_FRACTION * cfg.max_speed_mps, cfg.max_turn_rps)
         return turn.for_vehicle(self.vehicle)
 
     def hold_command(self, est: DisturbanceEstimate) -> Command:
@@ -188,7 +191,7 @@ class AppearanceServo:
         view it needs to recover."""
         if not self.config.compensate or not est.ready:
             return STOP
-        limit_v, limit_w = 0.3 * self.config.max_speed_mps, self.config.max_turn_rps
+        limit_v, limit_w = BLIND_SPEED_FRACTION * self.config.max_speed_mps, self.config.max_turn_rps
         v_f = v_h = 0.0
         if math.isfinite(est.kappa) and est.kappa > 1e-6:  # drift mu [lambda/s] over kappa [1/m] -> m/s
             v_f, v_h = -est.mu_f / est.kappa, -est.mu_h / est.kappa
