@@ -283,7 +283,7 @@ def from_dict(cls, data: dict):
 # (docs/theory.md section 3; used by topomap.servo)
 @dataclass(frozen=True)
 class RelativePoseConfig:
-    """Planar relative pose from matched points (see :mod:`topomap.servo.geometry`)."""
+    """Planar relative pose from matched points (see :mod:`topomap.servo.relpose`)."""
 
     ransac_px: float = 1.5  # inlier threshold on the reprojection error (depth eliminated) [px]
     ransac_confidence: float = 0.999

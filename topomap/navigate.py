@@ -55,7 +55,9 @@ from topomap.matching import Verification, verify
 from topomap.retrieval import sad
 from topomap.motion import STOP, Command, VehicleKind, vehicle_kind
 from topomap.plan import Planner, Route
-from topomap.servo.geometry import PoseStatus, RelativePose, relative_pose, wall_normals
+from topomap.servo.homography import wall_normals
+from topomap.servo.pose import PoseStatus, RelativePose
+from topomap.servo.relpose import relative_pose
 from topomap.servo.servo import AppearanceServo, ServoOutput, ServoStatus
 
 __all__ = ["RobotLike", "NavStatus", "EventKind", "NavEvent", "NavOutcome", "Navigator"]
@@ -378,7 +380,7 @@ class Navigator:
 
         Normals: each neighbour that sees the keyframe's view as one plane allows two, the wall's and
         a false one that depends on where the neighbour was taken; the servo keeps the pose whose
-        normal agrees (:func:`~topomap.servo.geometry.choose_plane_solution`). Scale: each
+        normal agrees (:func:`~topomap.servo.homography.choose_plane_solution`). Scale: each
         neighbour's position measured in both conventions, camera height (floor points) over median
         depth; the median of those, clipped to 1/3..3 times the nominal scale."""
         if node not in self._geometry:

@@ -11,15 +11,8 @@ polar pose), the pure laws :func:`unicycle_law` / :func:`omni_law`, and the
 :class:`DisturbanceObserver`.
 """
 
-from topomap.servo.geometry import (
-    PoseStatus,
-    RelativePose,
-    ScaleConvention,
-    TwoPointTracker,
-    relative_pose,
-    relative_pose_normalized,
-    two_point_candidates,
-)
+from topomap.servo.pose import PoseStatus, RelativePose, ScaleConvention
+from topomap.servo.relpose import relative_pose, relative_pose_normalized
 from topomap.servo.laws import LawState, aicardi_command, aicardi_coordinates, omni_law, unicycle_law
 from topomap.servo.observer import DisturbanceEstimate, DisturbanceObserver
 from topomap.servo.servo import AppearanceServo, ServoOutput, ServoStatus
@@ -33,8 +26,6 @@ __all__ = [
     "ScaleConvention",
     "relative_pose",
     "relative_pose_normalized",
-    "two_point_candidates",
-    "TwoPointTracker",
     "LawState",
     "aicardi_coordinates",
     "aicardi_command",

@@ -2,7 +2,7 @@
 
 One control step chains the three parts of :mod:`topomap.servo`:
 
-1. :func:`~topomap.servo.geometry.relative_pose` — scaled planar pose of the current camera w.r.t.
+1. :func:`~topomap.servo.relpose.relative_pose` — scaled planar pose of the current camera w.r.t.
    the goal camera from the matched pixels;
 2. :class:`~topomap.servo.observer.DisturbanceObserver` — ``d_omega`` from the heading rate, the
    scaled forward speed ratio for the scale-free law;
@@ -27,7 +27,9 @@ from topomap.camera import CameraIntrinsics
 from topomap.config import ServoConfig
 from topomap.errors import ConfigError
 from topomap.motion import STOP, Command, VehicleKind, vehicle_kind
-from topomap.servo.geometry import PoseStatus, RelativePose, choose_plane_solution, relative_pose
+from topomap.servo.homography import choose_plane_solution
+from topomap.servo.pose import PoseStatus, RelativePose
+from topomap.servo.relpose import relative_pose
 from topomap.servo.laws import LawState, omni_law, unicycle_law
 from topomap.servo.observer import DisturbanceEstimate, DisturbanceObserver
 
@@ -95,7 +97,7 @@ class AppearanceServo:
         """A new goal image: restart pose references, keep the disturbance estimates.
 
         ``wall_normals``: angles [rad] of the goal wall's normal that other views of the goal image
-        allow (:func:`~topomap.servo.geometry.wall_normals`); facing a single wall they decide
+        allow (:func:`~topomap.servo.homography.wall_normals`); facing a single wall they decide
         between the two poses the images allow. ``scale_m``: the goal's scale (metres per scaled
         unit, e.g. its median depth) when known; it turns the estimated distance into metres
         (``position_error_m``, convergence) and sets the laws' metric radii and gains; default
