@@ -327,7 +327,7 @@ class RelativePoseConfig:
 
 @dataclass(frozen=True)
 class ObserverConfig:
-    """Disturbance observer (see :mod:`topomap.servo.observer`); noise levels of its Kalman filters."""
+    """Disturbance observer (see :mod:`topomap.servo.disturbance`); noise levels of its Kalman filters."""
 
     heading_noise_rad: float = 0.003  # std of one relative-heading measurement [rad]
     position_noise_s: float = 0.004  # std of one scaled-position measurement [lambda]

@@ -137,7 +137,7 @@ def test_a_known_goal_scale_makes_distances_metric():
 def test_blind_servo_turns_back_toward_the_goal_heading():
     """Lost (no geometry) with a dead-reckoned heading error, the compensating servo turns in place
     toward the goal's heading (and cancels d_omega); the uncompensated baseline just stops."""
-    from topomap.servo.observer import DisturbanceEstimate
+    from topomap.servo.disturbance import DisturbanceEstimate
 
     est = DisturbanceEstimate(d_omega=0.1, d_omega_std=0.01, theta=0.4, kappa=1 / 3.0)
     for vehicle in ("unicycle", "omni"):

@@ -14,7 +14,7 @@ polar pose), the pure laws :func:`unicycle_law` / :func:`omni_law`, and the
 from topomap.servo.pose import PoseStatus, RelativePose, ScaleConvention
 from topomap.servo.relpose import relative_pose, relative_pose_normalized
 from topomap.servo.laws import LawState, aicardi_command, aicardi_coordinates, omni_law, unicycle_law
-from topomap.servo.observer import DisturbanceEstimate, DisturbanceObserver
+from topomap.servo.disturbance import DisturbanceEstimate, DisturbanceObserver
 from topomap.servo.servo import AppearanceServo, ServoOutput, ServoStatus
 
 __all__ = [

@@ -4,7 +4,7 @@ One control step chains the three parts of :mod:`topomap.servo`:
 
 1. :func:`~topomap.servo.relpose.relative_pose` — scaled planar pose of the current camera w.r.t.
    the goal camera from the matched pixels;
-2. :class:`~topomap.servo.observer.DisturbanceObserver` — ``d_omega`` from the heading rate, the
+2. :class:`~topomap.servo.disturbance.DisturbanceObserver` — ``d_omega`` from the heading rate, the
    scaled forward speed ratio for the scale-free law;
 3. :func:`~topomap.servo.laws.unicycle_law` or :func:`~topomap.servo.laws.omni_law`.
 
@@ -31,7 +31,7 @@ from topomap.servo.homography import choose_plane_solution
 from topomap.servo.pose import PoseStatus, RelativePose
 from topomap.servo.relpose import relative_pose
 from topomap.servo.laws import LawState, omni_law, unicycle_law
-from topomap.servo.observer import DisturbanceEstimate, DisturbanceObserver
+from topomap.servo.disturbance import DisturbanceEstimate, DisturbanceObserver
 
 __all__ = ["ServoStatus", "ServoOutput", "AppearanceServo"]
 
