@@ -47,7 +47,7 @@ import networkx as nx
 import numpy as np
 
 from topomap.camera import CameraIntrinsics
-from topomap.config import LocalizeConfig, NavigateConfig, PlanConfig, ServoConfig
+from topomap.config import LocalizeConfig, NavigateConfig, PlanConfig, ScaleConvention, ServoConfig
 from topomap.errors import NoRouteError
 from topomap.graph import TopoMap
 from topomap.localize import Localization, Localizer, Query
@@ -385,7 +385,7 @@ class Navigator:
         depth; the median of those, clipped to 1/3..3 times the nominal scale."""
         if node not in self._geometry:
             geo = self.servo.config.geometry
-            floor, plain = replace(geo, scale="camera_height"), replace(geo, plane_inlier_fraction=1.0)
+            floor, plain = replace(geo, scale=ScaleConvention.CAMERA_HEIGHT), replace(geo, plane_inlier_fraction=1.0)
             normals: list[float] = []
             scales: list[float] = []
             for nb in self.map.neighbours(node):

@@ -10,7 +10,7 @@ import pytest
 from servo_synth import CAM_HEIGHT, CAMERA, GOAL, POINTS, in_world, matches, median_goal_depth, relative
 
 from topomap.config import RelativePoseConfig
-from topomap.errors import ConfigError
+from topomap.errors import ConfigError, ShapeError
 from topomap.motion import wrap_angle
 from topomap.servo.pose import PoseStatus, scale_convention
 from topomap.servo.relpose import relative_pose, relative_pose_normalized
@@ -115,8 +115,15 @@ def test_points_on_the_horizon_are_degenerate():
 
 
 def test_bad_input_is_a_clear_error():
-    with pytest.raises(ConfigError, match="differ in length"):
+    with pytest.raises(ShapeError, match="row by row"):
         relative_pose(np.zeros((5, 2)), np.zeros((4, 2)), CAMERA)
+    with pytest.raises(ShapeError, match=r"\(N, 2\).*\(40, 3\)"):  # not silently 60 matches
+        relative_pose(np.zeros((40, 3)), np.zeros((40, 3)), CAMERA)
+    with pytest.raises(ShapeError, match="shape \\(80,\\)"):
+        relative_pose_normalized(np.zeros(80), np.zeros(80), CAMERA.fx)
+    with pytest.raises(ShapeError, match="dtype"):
+        relative_pose(np.array([["a", "b"]]), np.zeros((1, 2)), CAMERA)
+    assert relative_pose([], [], CAMERA).status is PoseStatus.TOO_FEW_POINTS  # no matches at all
     with pytest.raises(ConfigError, match="choose one of: camera_height, median_depth"):
         RelativePoseConfig(scale="metric")
     with pytest.raises(ConfigError, match="choose one of"):

@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from topomap.config import ServoConfig
+from topomap.config import ServoConfig, UnicycleLaw
 from topomap.motion import Command, saturate, wrap_angle
 
 __all__ = [
@@ -170,7 +170,7 @@ def unicycle_law(
     else:
         sgn = -1.0 if reverse else 1.0
         e_s, alpha, theta_a = aicardi_coordinates(sgn * x_s, sgn * z_s, theta)
-        kap = kappa_hat if cfg.unicycle_law == "scale_free" else None
+        kap = kappa_hat if cfg.unicycle_law is UnicycleLaw.SCALE_FREE else None
         c = aicardi_command(
             e_s, alpha, theta_a, cfg, d_omega_hat=d_omega_hat, kappa_hat=kap, mu_hat=sgn * mu_hat, v_extra=sgn * v_i
         )

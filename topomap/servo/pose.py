@@ -40,7 +40,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from topomap.errors import unknown_choice
+from topomap.config import ScaleConvention, scale_convention
 from topomap.motion import wrap_angle
 
 __all__ = ["PoseStatus", "ScaleConvention", "scale_convention", "PlaneSolution", "RelativePose"]
@@ -63,23 +63,6 @@ class PoseStatus(str, enum.Enum):
     @property
     def has_translation(self) -> bool:
         return self in (PoseStatus.OK, PoseStatus.AMBIGUOUS)
-
-
-class ScaleConvention(str, enum.Enum):
-    """What the unknown scale lambda is (module docstring)."""
-
-    MEDIAN_DEPTH = "median_depth"
-    CAMERA_HEIGHT = "camera_height"
-
-
-def scale_convention(name: str | ScaleConvention) -> ScaleConvention:
-    """Parse a scale convention name; an unknown one lists the valid choices."""
-    if isinstance(name, ScaleConvention):
-        return name
-    try:
-        return ScaleConvention(str(name).lower())
-    except ValueError:
-        raise unknown_choice("scale convention", name, [s.value for s in ScaleConvention]) from None
 
 
 @dataclass(frozen=True)

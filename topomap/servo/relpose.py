@@ -36,7 +36,7 @@ import numpy as np
 
 from topomap.camera import CameraIntrinsics
 from topomap.config import RelativePoseConfig
-from topomap.errors import ConfigError
+from topomap.errors import points_array
 from topomap.motion import wrap_angle
 from topomap.servo.essential import (
     depth_ratio_direction,
@@ -74,12 +74,11 @@ def relative_pose(
 
     ``matched_cur_px, matched_goal_px``: (N, 2) pixel coordinates, row i of one matching row i of the
     other; ``camera``: intrinsics of the current image (``goal_camera`` of the goal image, default
-    the same). Never raises for bad geometry: the status says what went wrong.
+    the same). Never raises for bad geometry: the status says what went wrong; arrays of another
+    shape or dtype (or of different lengths) raise :class:`~topomap.errors.ShapeError`.
     """
-    cur = np.asarray(matched_cur_px, dtype=np.float64).reshape(-1, 2)
-    goal = np.asarray(matched_goal_px, dtype=np.float64).reshape(-1, 2)
-    if len(cur) != len(goal):
-        raise ConfigError(f"matched point arrays differ in length ({len(cur)} vs {len(goal)}); pass matches row by row")
+    cur = points_array(matched_cur_px, "matched_cur_px")
+    goal = points_array(matched_goal_px, "matched_goal_px", rows=len(cur))
     goal_camera = goal_camera or camera
     f_px = 0.5 * (camera.fx + camera.fy)
     return relative_pose_normalized(camera.normalize(cur), goal_camera.normalize(goal), f_px, config)
@@ -91,8 +90,8 @@ def relative_pose_normalized(
     """:func:`relative_pose` on (N, 2) normalised coordinates; ``focal_px`` converts thresholds to pixels."""
     cfg = config or RelativePoseConfig()
     scale = scale_convention(cfg.scale)
-    cur_n = np.asarray(cur_n, dtype=np.float64).reshape(-1, 2)
-    goal_n = np.asarray(goal_n, dtype=np.float64).reshape(-1, 2)
+    cur_n = points_array(cur_n, "cur_n")
+    goal_n = points_array(goal_n, "goal_n", rows=len(cur_n))
     n = len(cur_n)
     mask = np.zeros(n, bool)  # filled once the inliers are final
     fields = dict(n_matches=n, scale=scale, inlier_mask=mask)

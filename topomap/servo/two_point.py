@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from topomap.errors import points_array
 from topomap.motion import Command, wrap_angle
 from topomap.servo.pose import PoseStatus, RelativePose
 
@@ -28,8 +29,9 @@ def two_point_candidates(goal_n: np.ndarray, cur_n: np.ndarray, min_abs_y: float
     put a point behind the goal camera are dropped. Scale: ``lambda`` = harmonic mean of the two
     goal depths (``|c| / lambda = (a_1 + a_2) / 2``). Returns 0, 1 or 2 candidates.
     """
-    goal_n = np.asarray(goal_n, dtype=np.float64).reshape(-1, 2)[:2]
-    cur_n = np.asarray(cur_n, dtype=np.float64).reshape(-1, 2)[:2]
+    goal_n = points_array(goal_n, "goal_n")
+    cur_n = points_array(cur_n, "cur_n", rows=len(goal_n))
+    goal_n, cur_n = goal_n[:2], cur_n[:2]
     if len(goal_n) < 2:
         return []
     yg, yc = goal_n[:, 1], cur_n[:, 1]
@@ -111,7 +113,8 @@ class TwoPointTracker:
 
     def update(self, goal_n: np.ndarray, cur_n: np.ndarray, last_command: Command | None = None, dt: float = 0.1) -> RelativePose:
         """One frame: 2 matches (goal, current, normalised (2, 2)); ``last_command`` applied for ``dt`` [s] since the previous one."""
-        goal_n = np.asarray(goal_n, dtype=np.float64).reshape(-1, 2)
+        goal_n = points_array(goal_n, "goal_n")
+        cur_n = points_array(cur_n, "cur_n", rows=len(goal_n))
         if len(goal_n) < 2:
             return RelativePose(PoseStatus.TOO_FEW_POINTS, n_matches=len(goal_n), inlier_mask=np.zeros(len(goal_n), bool))
         cands = two_point_candidates(goal_n, cur_n, self.min_abs_y)
