@@ -20,6 +20,7 @@ from topomap.errors import DatasetError
 from topomap.features import detector
 from topomap.images import open_sequence
 from topomap.parallel import make_executor
+from topomap.relative_motion import annotate_edges
 from topomap.store import (
     check_writable,
     export_graphml,
@@ -270,6 +271,7 @@ def index(map_path: Path = typer.Argument(..., metavar="MAP", help="Map file."))
         build_index(m)
         if m.index is None:
             fail(f"{map_path} has too few features to index")
+        annotate_edges(m)  # edges of older maps get their keyframe-pair geometry too
         update.commit()
     console.print(f"indexed {len(m.index)} nodes with {m.index.vocabulary.size} visual words")
 

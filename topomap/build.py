@@ -46,6 +46,7 @@ from topomap.graph import Edge, EdgeKind, FrameRecord, Node, TopoMap
 from topomap.images import ImageSequence, open_sequence, read_image, to_working_resolution, working_size
 from topomap.matching import Verification, verify
 from topomap.parallel import Executor, InlineExecutor
+from topomap.relative_motion import annotate_edges
 from topomap.retrieval import THUMBNAIL_PATCH, THUMBNAIL_SIZE, BowIndex, Vocabulary, thumbnail_descriptor, vocabulary_size
 
 __all__ = ["BuildProgress", "FrameTask", "PreparedFrame", "build_map", "build_index", "prepare_frame",
@@ -421,6 +422,7 @@ def build_map(
     new_ids = [n for n in sorted(tmap.nodes) if n >= first_node]
     build_index(tmap, on_progress, executor=executor)
     loops = _close_loops(tmap, new_ids, config, on_progress, executor=executor)
+    annotate_edges(tmap, executor=executor)  # the keyframe pairs' geometry, read by the navigator
     tmap.sequences.append(
         {
             "source": str(seq.source),

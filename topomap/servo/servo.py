@@ -206,7 +206,3 @@ class AppearanceServo:
         if "observer" in changes or "nominal_scale_m" in changes:
             raise ConfigError("the observer settings and the nominal scale cannot change while running; make a new servo")
         self.config = replace(self.config, **changes)
-
-    def with_config(self, **changes) -> AppearanceServo:
-        """A fresh servo for the same vehicle with some configuration fields changed."""
-        return AppearanceServo(self.vehicle, replace(self.config, **changes))
