@@ -1,5 +1,5 @@
 """Does the current image show a node's keyframe view? The image-side test of arrival at a goal
-(docs/theory.md section 4.3): the verified matches barely moved, and the whole image looks more like
+(docs/theory.md section 4.4): the verified matches barely moved, and the whole image looks more like
 the keyframe than its neighbours do — or, where neighbouring keyframes look much alike, more than any
 place away from the goal. Facing a single wall the planar relative pose is ambiguous, so the pose
 estimate alone cannot certify arrival; look-alike textures elsewhere can match part of the view

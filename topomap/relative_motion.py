@@ -1,6 +1,6 @@
 """Keyframe-pair geometry: what the two keyframe images of an edge tell about their relative pose,
 computed once when the map is built or indexed and stored in ``edge.relative_motion``
-(docs/theory.md sections 3-4).
+(docs/theory.md section 4.4; the poses are section 3.2's, the walls section 3.4's).
 
 The navigator needs, for two neighbouring keyframes, the heading of one relative to the other (at a
 subgoal switch it predicts the heading to the next subgoal, which may lie a turn away), the wall

@@ -1,6 +1,6 @@
 """Planar essential matrix: the 3-point minimal solver inside MSAC, its decomposition, and the
 least-squares refinement of ``(theta, direction of c)`` with the per-point depths eliminated
-(docs/theory.md section 3; conventions in :mod:`topomap.servo.pose`)."""
+(docs/theory.md section 3.2; conventions in :mod:`topomap.servo.pose`)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Planar-motion homography: the poses a single plane (a wall) allows, and the choice between them
-(docs/theory.md section 3).
+(docs/theory.md section 3.4).
 
 Facing a single wall (all inliers on one plane) the planar essential matrix is not unique: the
 points allow two poses, and the refinement of :mod:`topomap.servo.relpose` (step 3, free depth per point) slides between them

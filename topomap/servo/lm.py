@@ -1,5 +1,5 @@
 """One small robust Levenberg-Marquardt, shared by the planar essential matrix's refinement and
-the planar homography's (docs/theory.md section 3)."""
+the planar homography's (docs/theory.md sections 3.2 and 3.4)."""
 
 from __future__ import annotations
 

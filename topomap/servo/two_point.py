@@ -1,7 +1,6 @@
-"""Dynamic appearance servoing with 2 points (docs/theory.md section 3, "Dynamic AS: 2 points
-suffice"): :func:`two_point_candidates` solves the static problem with 2 matches (at most two
-solutions), :class:`TwoPointTracker` keeps the solution whose motion agrees with the commanded input
-over time. Not used by the servo (which has many matches per image); kept as the theory's
+"""Dynamic appearance servoing with 2 points (docs/theory.md section 3.5): :func:`two_point_candidates`
+solves the static problem with 2 matches (at most two solutions), :class:`TwoPointTracker` keeps the
+solution whose motion agrees with the commanded input over time. Not used by the servo (which has many matches per image); kept as the theory's
 reference implementation, exercised by the tests."""
 
 from __future__ import annotations
