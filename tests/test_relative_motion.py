@@ -75,3 +75,15 @@ def test_pair_motion_json_is_validated():
                 {**ok, "extra": 1}, {**ok, "rho_depth_s": -1.0}, [1, 2]):
         with pytest.raises(ValueError):
             PairMotion.from_json(bad)
+
+
+def test_goal_view_gathers_the_neighbours(walk):
+    m, _ = walk
+    pairs = KeyframePairs(m, RelativePoseConfig())
+    node = sorted(m.nodes)[2]
+    normals, scale = pairs.goal_view(node, None, 3.0)
+    assert scale is None  # no camera height, no metric scale
+    assert all(isinstance(n, float) for n in normals)
+    normals_h, scale_h = pairs.goal_view(node, 0.7, 3.0)
+    assert normals_h == normals
+    assert scale_h is None or 1.0 <= scale_h <= 9.0  # clipped to 1/3..3 times the nominal scale

@@ -65,8 +65,6 @@ log = logging.getLogger(__name__)
 
 #: A waypoint's undocking radius is at least this multiple of its (wide) docking radius.
 WAYPOINT_UNDOCK_FACTOR = 1.7
-#: The goal's metric scale stays within this factor of the nominal scale (either way).
-SCALE_CLIP_FACTOR = 3.0
 #: The settle window counts only when at least this fraction of its steps has a pose estimate.
 SETTLE_MIN_VALID_FRACTION = 0.8
 
@@ -253,7 +251,6 @@ class Navigator:
         self._estimate = None  # the servo's latest disturbance estimate
         self._here: int | None = None  # the node the robot was last localized at
         self._approach_side: float | None = None  # side of the subgoal camera the robot comes from
-        self._geometry: dict[int, tuple[tuple[float, ...], float | None]] = {}
         height = self.config.camera_height_m
         self._camera_height_m = height if height is not None else getattr(robot, "camera_height_m", None)
 
@@ -346,7 +343,7 @@ class Navigator:
         # the side of the subgoal camera the robot comes from: behind it (x < 0) when following the
         # taught direction, in front of it when driving the route backwards
         self._approach_side = None
-        normals, scale = self._goal_geometry(nodes[i])
+        normals, scale = self.pairs.goal_view(nodes[i], self._camera_height_m, self.servo.config.nominal_scale_m)
         self.servo.retarget(normals, scale if i == len(nodes) - 1 else None, heading_prior)  # metric at the goal
         self.servo.reconfigure(**(self._goal_servo if i == len(nodes) - 1 else self._waypoint_servo))
 
@@ -428,33 +425,6 @@ class Navigator:
                                route=tuple(leg.nodes))
                 continue
             self._move(s.command)
-
-    def _goal_geometry(self, node: int) -> tuple[tuple[float, ...], float | None]:
-        """What the node keyframe's graph neighbours tell about its view (cached): the normals of its
-        wall, and its scale (metres per scaled unit) when the camera height is known.
-
-        Normals: each neighbour that sees the keyframe's view as one plane allows two, the wall's and
-        a false one that depends on where the neighbour was taken; the servo keeps the pose whose
-        normal agrees (:func:`~topomap.servo.homography.choose_plane_solution`). Scale: each
-        neighbour's distance measured in both conventions, camera height (floor points) over median
-        depth (:class:`~topomap.relative_motion.PairMotion`); the median of those, clipped to
-        1/SCALE_CLIP_FACTOR..SCALE_CLIP_FACTOR times the nominal scale."""
-        if node not in self._geometry:
-            normals: list[float] = []
-            scales: list[float] = []
-            for nb in self.map.neighbours(node):
-                pair = self.pairs.motion(nb, node)
-                if pair is None:
-                    continue
-                normals += pair.wall_normals_rad
-                if self._camera_height_m is not None and pair.rho_depth_s is not None:
-                    scales.append(self._camera_height_m * pair.rho_floor_s / pair.rho_depth_s)
-            scale = None
-            if scales:
-                nominal = self.servo.config.nominal_scale_m
-                scale = float(np.clip(np.median(scales), nominal / SCALE_CLIP_FACTOR, SCALE_CLIP_FACTOR * nominal))
-            self._geometry[node] = (tuple(normals), scale)
-        return self._geometry[node]
 
     def _keyframe_heading(self, a: int, b: int) -> float:
         """Heading of keyframe ``a`` relative to keyframe ``b`` from their images [rad]; NaN when

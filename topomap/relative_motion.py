@@ -29,6 +29,8 @@ import math
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 
+import numpy as np
+
 from topomap.camera import CameraIntrinsics
 from topomap.config import MatchConfig, RelativePoseConfig, ScaleConvention, to_dict
 from topomap.features import Features
@@ -39,7 +41,7 @@ from topomap.servo.homography import wall_normals
 from topomap.servo.pose import PoseStatus
 from topomap.servo.relpose import relative_pose
 
-__all__ = ["PairMotion", "pair_motion", "annotate_edges", "KeyframePairs", "META_KEY"]
+__all__ = ["PairMotion", "pair_motion", "annotate_edges", "KeyframePairs", "META_KEY", "SCALE_CLIP_FACTOR"]
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +50,8 @@ META_KEY = "relative_motion"
 VERSION = 1
 #: Below this scaled distance between the keyframes their scale ratio is noise.
 MIN_RHO_S = 1e-3
+#: A goal's metric scale stays within this factor of the nominal scale (either way).
+SCALE_CLIP_FACTOR = 3.0
 
 
 @dataclass(frozen=True)
@@ -149,6 +153,34 @@ class KeyframePairs:
         meta = tmap.meta.get(META_KEY)
         self.stored = isinstance(meta, dict) and meta.get("geometry") == _stamp(geometry)
         self._cache: dict[tuple[int, int], PairMotion | None] = {}
+        self._views: dict[tuple[int, float | None, float], tuple[tuple[float, ...], float | None]] = {}
+
+    def goal_view(self, node: int, camera_height_m: float | None, nominal_scale_m: float) -> tuple[tuple[float, ...], float | None]:
+        """What the node keyframe's graph neighbours tell about its view: the normals of its wall,
+        and its scale (metres per scaled unit) when the camera height is known, else None.
+
+        Normals: each neighbour that sees the keyframe's view as one plane allows two, the wall's and
+        a false one that depends on where the neighbour was taken; the servo keeps the pose whose
+        normal agrees (:func:`~topomap.servo.homography.choose_plane_solution`). Scale: each
+        neighbour's distance measured in both conventions, camera height (floor points) over median
+        depth; the median of those, clipped to 1/SCALE_CLIP_FACTOR..SCALE_CLIP_FACTOR times
+        ``nominal_scale_m``."""
+        key = (node, camera_height_m, nominal_scale_m)
+        if key not in self._views:
+            normals: list[float] = []
+            scales: list[float] = []
+            for nb in self.map.neighbours(node):
+                pair = self.motion(nb, node)
+                if pair is None:
+                    continue
+                normals += pair.wall_normals_rad
+                if camera_height_m is not None and pair.rho_depth_s is not None:
+                    scales.append(camera_height_m * pair.rho_floor_s / pair.rho_depth_s)
+            scale = None
+            if scales:
+                scale = float(np.clip(np.median(scales), nominal_scale_m / SCALE_CLIP_FACTOR, SCALE_CLIP_FACTOR * nominal_scale_m))
+            self._views[key] = (tuple(normals), scale)
+        return self._views[key]
 
     def motion(self, a: int, b: int) -> PairMotion | None:
         """Keyframe ``a`` seen from keyframe ``b``; None when they do not verify."""
