@@ -32,14 +32,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from topomap.camera import CameraIntrinsics
-from topomap.config import MatchConfig, RelativePoseConfig, ScaleConvention, to_dict
+from topomap.config import MatchConfig, RelativePoseConfig, to_dict
 from topomap.features import Features
 from topomap.graph import Edge, TopoMap
 from topomap.matching import verify
 from topomap.parallel import Executor
 from topomap.servo.homography import wall_normals
 from topomap.servo.pose import PoseStatus
-from topomap.servo.relpose import relative_pose
+from topomap.servo.relpose import relative_pose_with_scales
 
 __all__ = ["PairMotion", "pair_motion", "annotate_edges", "KeyframePairs", "META_KEY", "SCALE_CLIP_FACTOR"]
 
@@ -103,15 +103,13 @@ def pair_motion(fa: Features, fb: Features, camera: CameraIntrinsics, match: Mat
     if not v.verified:
         return None
     cur, dst = fa.keypoints[v.inlier_matches.ia], fb.keypoints[v.inlier_matches.ib]
-    pose = relative_pose(cur, dst, camera, geometry)
+    # the distances are the essential matrix's (before a wall's homography picks a pose)
+    pose, rho, rho_floor = relative_pose_with_scales(cur, dst, camera, geometry)
     theta = pose.theta if pose.status in (PoseStatus.OK, PoseStatus.PURE_ROTATION) else math.nan
-    # without plane solutions the pose is the essential matrix's already
-    plain = replace(geometry, plane_inlier_fraction=1.0)
-    depth = relative_pose(cur, dst, camera, plain) if pose.plane_solutions else pose
-    floor = relative_pose(cur, dst, camera, replace(geometry, scale=ScaleConvention.CAMERA_HEIGHT))
-    if depth.status is PoseStatus.OK and floor.status is PoseStatus.OK and depth.rho_s > MIN_RHO_S:
-        return PairMotion(theta, wall_normals(pose, geometry.plane_min_t_over_d), depth.rho_s, floor.rho_s)
-    return PairMotion(theta, wall_normals(pose, geometry.plane_min_t_over_d))
+    normals = wall_normals(pose, geometry.plane_min_t_over_d)
+    if rho is not None and rho_floor is not None and rho > MIN_RHO_S:
+        return PairMotion(theta, normals, rho, rho_floor)
+    return PairMotion(theta, normals)
 
 
 def _edge_task(args) -> dict:

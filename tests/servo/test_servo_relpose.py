@@ -150,3 +150,24 @@ def test_normalized_entry_point_matches_the_pixel_one():
     a = relative_pose(cp, gp, CAMERA)
     b = relative_pose_normalized(CAMERA.normalize(cp), CAMERA.normalize(gp), CAMERA.fx)
     assert a.theta == pytest.approx(b.theta) and a.x_s == pytest.approx(b.x_s)
+
+
+@pytest.mark.parametrize("scale", ["median_depth", "camera_height"])
+def test_scales_from_one_run_equal_three_runs(scale):
+    """relative_pose_with_scales gives the very numbers of the three calls it replaces: the pose, the
+    distance without the plane's choice, and the camera-height distance."""
+    from dataclasses import replace
+
+    from topomap.servo.relpose import relative_pose_with_scales
+
+    cfg = RelativePoseConfig(scale=scale)
+    rng = np.random.default_rng(3)
+    for rel in [(-1.0, 0.3, 0.2), (-0.4, -0.2, -0.1), (0.0, 0.0, 0.3)]:
+        cp, gp, _ = matches(POINTS, in_world(rel), GOAL, rng, noise_px=0.5, outliers=0.1)
+        pose, rho, rho_floor = relative_pose_with_scales(cp, gp, CAMERA, cfg)
+        ref = relative_pose(cp, gp, CAMERA, cfg)
+        assert (pose.status, pose.theta) == (ref.status, ref.theta) or math.isnan(ref.theta)
+        plain = relative_pose(cp, gp, CAMERA, replace(cfg, plane_inlier_fraction=1.0))
+        floor = relative_pose(cp, gp, CAMERA, replace(cfg, scale="camera_height"))
+        assert rho == (plain.rho_s if plain.status is PoseStatus.OK else None)
+        assert rho_floor == (floor.rho_s if floor.status is PoseStatus.OK else None)

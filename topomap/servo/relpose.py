@@ -52,7 +52,7 @@ from topomap.servo.homography import plane_solutions
 from topomap.servo.lm import LMFit, robust_lm
 from topomap.servo.pose import PoseStatus, RelativePose, ScaleConvention, scale_convention
 
-__all__ = ["relative_pose", "relative_pose_normalized"]
+__all__ = ["relative_pose", "relative_pose_normalized", "relative_pose_with_scales"]
 
 
 class _Rejected(Exception):
@@ -88,10 +88,34 @@ def relative_pose_normalized(
     cur_n: np.ndarray, goal_n: np.ndarray, focal_px: float, config: RelativePoseConfig | None = None
 ) -> RelativePose:
     """:func:`relative_pose` on (N, 2) normalised coordinates; ``focal_px`` converts thresholds to pixels."""
-    cfg = config or RelativePoseConfig()
+    return _solve(points_array(cur_n, "cur_n"), points_array(goal_n, "goal_n", rows=len(cur_n)), focal_px,
+                  config or RelativePoseConfig())[0]
+
+
+def relative_pose_with_scales(
+    matched_cur_px: np.ndarray,
+    matched_goal_px: np.ndarray,
+    camera: CameraIntrinsics,
+    config: RelativePoseConfig | None = None,
+) -> tuple[RelativePose, float | None, float | None]:
+    """:func:`relative_pose` and the distance ``rho / lambda`` in two scale conventions, from one run:
+    the configuration's own before the plane's choice (what ``plane_inlier_fraction=1`` reports) and
+    the camera height's; each None where that pose would not be OK. Their ratio is a metric scale."""
+    cur = points_array(matched_cur_px, "matched_cur_px")
+    goal = points_array(matched_goal_px, "matched_goal_px", rows=len(cur))
+    return _solve(camera.normalize(cur), camera.normalize(goal), 0.5 * (camera.fx + camera.fy), config or RelativePoseConfig())
+
+
+def _rho(k: float, psi: float) -> float:
+    """``RelativePose.rho_s`` of the pose at distance ``k`` in direction ``psi`` (the same arithmetic)."""
+    cX, cZ = k * math.sin(psi), k * math.cos(psi)
+    return math.hypot(cZ, -cX)
+
+
+def _solve(cur_n: np.ndarray, goal_n: np.ndarray, focal_px: float,
+           cfg: RelativePoseConfig) -> tuple[RelativePose, float | None, float | None]:
+    """The pipeline: the pose, and the distances of :func:`relative_pose_with_scales`."""
     scale = scale_convention(cfg.scale)
-    cur_n = points_array(cur_n, "cur_n")
-    goal_n = points_array(goal_n, "goal_n", rows=len(cur_n))
     n = len(cur_n)
     mask = np.zeros(n, bool)  # filled once the inliers are final
     fields = dict(n_matches=n, scale=scale, inlier_mask=mask)
@@ -110,14 +134,18 @@ def relative_pose_normalized(
         fields.update(inliers=int(inl.sum()), f_ratio=f_ratio, essential=essential_matrix(e / np.linalg.norm(e)))
         if not f_ratio > cfg.rotation_f_ratio:
             rres = math.sqrt(float(np.median(r2_rot)) / 1.386) * focal_px  # chi2(2) median -> rms
-            return RelativePose(PoseStatus.PURE_ROTATION, theta=float(wrap_angle(th_rot)), residual_px=rres, **fields)
-        k, psi = _scale_stage(theta, psi, g, c, scale, cfg)
+            pose = RelativePose(PoseStatus.PURE_ROTATION, theta=float(wrap_angle(th_rot)), residual_px=rres, **fields)
+            return pose, None, None
+        k_depth, k_floor, psi = _scale_stage(theta, psi, g, c, cfg)
+        k = k_depth if scale is ScaleConvention.MEDIAN_DEPTH else k_floor
+        if k is None:  # too few points below the horizon to find the floor
+            raise _Rejected(PoseStatus.DEGENERATE, theta=float(wrap_angle(theta)))
     except _Rejected as r:
-        return RelativePose(r.status, **{**fields, **r.fields})
+        return RelativePose(r.status, **{**fields, **r.fields}), None, None
     resid_px = math.sqrt(float(np.median(r2_full)) / 0.455) * focal_px  # chi2(1) median -> rms
     cX, cZ = k * math.sin(psi), k * math.cos(psi)
     pose = RelativePose(PoseStatus.OK, theta=float(wrap_angle(theta)), x_s=cZ, z_s=-cX, residual_px=resid_px, **fields)
-    return _plane_stage(pose, g, c, thr, scale, cfg)
+    return _plane_stage(pose, g, c, thr, scale, cfg), pose.rho_s, None if k_floor is None else _rho(k_floor, psi)
 
 
 def _essential_stage(g_all: np.ndarray, c_all: np.ndarray, thr: float, cfg: RelativePoseConfig):
@@ -173,24 +201,24 @@ def _translation_test(g: np.ndarray, c: np.ndarray, r2_full: np.ndarray, thr: fl
     return f_ratio, th_rot, r2_rot
 
 
-def _scale_stage(theta: float, psi: float, g: np.ndarray, c: np.ndarray, scale: ScaleConvention,
-                 cfg: RelativePoseConfig) -> tuple[float, float]:
-    """The sign of ``c`` by cheirality and ``|c| / lambda`` in the scale convention: ``(k, psi)``."""
+def _scale_stage(theta: float, psi: float, g: np.ndarray, c: np.ndarray,
+                 cfg: RelativePoseConfig) -> tuple[float, float | None, float]:
+    """The sign of ``c`` by cheirality and ``|c| / lambda`` in both scale conventions:
+    ``(k median depth, k camera height or None without floor points, psi)``."""
     # cheirality: points in front of the goal camera have a_i = |c| / Z_goal,i > 0
     a, _, _ = per_point_depths(theta, psi, g, c)
     if np.median(a) < 0:
         psi, a = psi + math.pi, -a
     if np.mean(a > 0) < 0.5:
         raise _Rejected(PoseStatus.DEGENERATE, theta=float(wrap_angle(theta)))
-    if scale is ScaleConvention.MEDIAN_DEPTH:
-        return float(np.median(a)), psi  # |c| / median(Z_goal)
+    k_depth = float(np.median(a))  # |c| / median(Z_goal)
     below = np.flatnonzero(g[:, 1] > cfg.floor_min_y)
     if len(below) < 3:
-        raise _Rejected(PoseStatus.DEGENERATE, theta=float(wrap_angle(theta)))
+        return k_depth, None, psi
     # a_i / y_i = |c| / Y_i (Y_i: point height below the camera). The points lowest in the
     # image are floor points (Y_i = camera height) unless something stands close to the camera.
     low = below[np.argsort(-g[below, 1])][: max(3, int(math.ceil(cfg.floor_fraction * len(below))))]
-    return float(np.median(a[low] / g[low, 1])), psi
+    return k_depth, float(np.median(a[low] / g[low, 1])), psi
 
 
 def _plane_stage(pose: RelativePose, g: np.ndarray, c: np.ndarray, thr: float, scale: ScaleConvention,
