@@ -50,6 +50,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_navigate as bench  # noqa: E402  (episode drawing, the per-process map cache)
 
+from topomap.config import NavigateConfig  # noqa: E402
+
 METHODS = bench.METHODS
 #: World seeds used for tuning so far; this benchmark refuses them unless --allow-tuning-worlds.
 TUNING_WORLDS = range(0, 100)
@@ -199,14 +201,14 @@ def run_one(job: dict) -> dict:
 
 
 def _budget(events: list[dict], per_hop: float) -> float:
-    """The navigator's time budget at the end, from its events: 60 s + per_hop per hop of the first
+    """The navigator's time budget at the end, from its events: ``time_budget_base_s`` + per_hop per hop of the first
     route, extended at each re-plan to the new route's (as :mod:`topomap.navigate` does)."""
-    budget = 0.0
+    budget, base = 0.0, NavigateConfig().time_budget_base_s
     for e in events:
         if e["kind"] == "planned":
-            budget = 60.0 + per_hop * max(1, e["hops"] or 0)
+            budget = base + per_hop * max(1, e["hops"] or 0)
         elif e["kind"] == "replanned":
-            budget = max(budget, e["t"] + 60.0 + per_hop * max(1, e["hops"] or 0))
+            budget = max(budget, e["t"] + base + per_hop * max(1, e["hops"] or 0))
     return budget
 
 

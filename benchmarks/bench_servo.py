@@ -26,7 +26,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "servo"))
 from servo_synth import CAMERA, matches, room_points  # noqa: E402
 
 from topomap.config import RelativePoseConfig  # noqa: E402
-from topomap.servo.geometry import PoseStatus, ransac_planar_essential, relative_pose, wrap_angle  # noqa: E402
+from topomap.motion import wrap_angle  # noqa: E402
+from topomap.servo.essential import ransac_planar_essential  # noqa: E402
+from topomap.servo.pose import PoseStatus  # noqa: E402
+from topomap.servo.relpose import relative_pose  # noqa: E402
 
 
 def scenes(trials: int, n_points: int, seed: int = 0):

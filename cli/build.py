@@ -21,6 +21,7 @@ from topomap.errors import DatasetError
 from topomap.features import detector
 from topomap.images import open_sequence
 from topomap.parallel import make_executor
+from topomap.relative_motion import annotate_edges
 from topomap.store import (
     check_writable,
     export_graphml,
@@ -291,6 +292,7 @@ def index(
         build_index(m)
         if m.index is None and not m.arrays:
             fail(f"{map_path} has too few features to index")
+        annotate_edges(m)  # edges of older maps get their keyframe-pair geometry too
         cal = None
         if not no_calibration:
             m.config = dataclasses.replace(m.config, calibration=dataclasses.replace(m.config.calibration, enabled=True))

@@ -13,6 +13,17 @@ SHARED = Path(os.environ.get("TOPOMAP_SHARED", Path(__file__).resolve().parents[
 DATASETS = SHARED / "datasets"
 
 
+#: Session fixtures that teach a simulated world, build its map and navigate in it (half a minute to
+#: minutes each): every test that uses one is marked slow (`pytest -m "not slow"` leaves them out).
+SLOW_FIXTURES = frozenset({"demo", "taught", "split_map", "short_run", "recorded"})
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if SLOW_FIXTURES.intersection(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)
+
+
 def dataset(name: str) -> Path:
     """Path of a real dataset under ../shared/datasets, skipping the test when it is absent."""
     p = DATASETS / name

@@ -196,6 +196,7 @@ TAMPERS: dict[str, tuple[str, ...]] = {
     "edge_reversed": (f"INSERT INTO edge ({_EDGE}) SELECT b, a, kind, inliers, similarity, flow_px, NULL, 0 FROM edge LIMIT 1",),
     "edge_motion_not_json": ("UPDATE edge SET relative_motion = '{oops'",),
     "edge_motion_blob": ("UPDATE edge SET relative_motion = x'00ff'",),
+    "edge_motion_not_object": ("UPDATE edge SET relative_motion = '[1, 2]'",),
     "thumbnail_empty": ("UPDATE node SET thumbnail = x'' WHERE id = 0",),
     "thumbnail_text": ("UPDATE node SET thumbnail = 'not an image' WHERE id = 0",),
     "image_text": ("UPDATE node SET image = 'not an image' WHERE id = 0",),

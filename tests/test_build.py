@@ -310,6 +310,7 @@ def test_castle_build_is_deterministic(castle):
     assert snapshot(again) == snapshot(m)
 
 
+@pytest.mark.slow
 def test_corridor_ref(corridor):
     m = corridor
     assert len(m.frames) == 111 and all(f.node is not None for f in m.frames)

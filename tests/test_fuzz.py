@@ -90,6 +90,7 @@ def _cli_peak(args: list[str]) -> tuple[int, str, float]:
 
 
 @pytest.mark.slow
+@pytest.mark.slow
 @pytest.mark.skipif(sys.platform != "linux", reason="ru_maxrss in KB")
 def test_bombs_stay_under_500_mb_through_the_cli(fuzz_base, tmp_path):
     from fuzz_cases import jpeg_declaring, png_bomb, reseal

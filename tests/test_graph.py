@@ -50,7 +50,7 @@ def test_access(chain):
     assert chain.node(2).source == "f20.png"
     assert chain.neighbours(1) == [0, 2] and chain.neighbours(4) == []
     assert chain.edge(2, 1) is chain.edge(1, 2) is not None and chain.edge(0, 4) is None
-    assert [f.id for f in chain.frames_of(3)] == [6, 7]
+    assert [f.id for f in chain.frames if f.node == 3] == [6, 7]
     assert chain.node_of_frame("f5.png") == 2 and chain.node_of_frame("f9.png") is None
     assert chain.node_of_frame("unknown.png") is None
     assert chain.next_node_id() == 5

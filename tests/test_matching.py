@@ -35,7 +35,7 @@ def test_warped_image_verifies_with_many_inliers(pair, kind):
     cfg = FeatureConfig(kind=kind, max_features=800)
     fa, fb = extract(a, cfg), extract(b, cfg)
     v = verify(fa, fb)
-    assert v.inliers >= 150, v.inliers
+    assert v.inliers >= 150 and v.verified, v.inliers
     assert v.inlier_ratio > 0.7
     assert 0.2 < v.similarity <= 1.0
     assert v.F is not None and v.F.shape == (3, 3)
@@ -52,7 +52,7 @@ def test_unrelated_images_do_not_verify(texture):
     b = window(scene(seed=7), 0.0)
     fa, fb = extract(a), extract(b)
     v = verify(fa, fb)
-    assert v.inliers == 0 and v.similarity == 0.0 and v.F is None
+    assert v.inliers == 0 and v.similarity == 0.0 and v.F is None and not v.verified
     far = extract(window(texture, 1800.0))  # same texture, no overlap
     assert verify(fa, far).inliers == 0
 

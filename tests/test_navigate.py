@@ -195,14 +195,12 @@ def test_demo_options_need_no_map(runner, cli_app, tmp_path):
 def test_stalled_at_goal_windows():
     """The settle test (medians over a window): a short one near the goal, and the patient one that
     lets a unicycle settle a little further out when it no longer makes progress."""
-    import types
-
     import numpy as np
 
     from topomap.config import NavigateConfig
+    from topomap.navigate import _Settle
 
     cfg = NavigateConfig()
-    nav = types.SimpleNamespace(config=cfg)
     rng = np.random.default_rng(0)
     t = np.arange(0.0, 25.0, cfg.control_period_s)
 
@@ -210,8 +208,11 @@ def test_stalled_at_goal_windows():
         return [(ti, d + rng.normal(0, noise), rng.normal(0, 0.01)) for ti, d in zip(t, dist)]
 
     def stalled(h, patient):
-        args = (cfg.settle_patience_max_m, cfg.settle_patience_s, cfg.settle_patience_progress_m) if patient else ()
-        return Navigator._stalled_at_goal(nav, h, *args)
+        settle = _Settle(cfg)
+        settle.history = h
+        if patient:
+            return settle.stalled(cfg.settle_patience_max_m, cfg.settle_patience_s, cfg.settle_patience_progress_m)
+        return settle.stalled(cfg.settle_max_m, cfg.settle_window_s, cfg.settle_progress_m)
 
     stuck = history(np.full(len(t), 0.15))  # 15 cm out, no progress
     assert not stalled(stuck, patient=False) and stalled(stuck, patient=True)
@@ -220,3 +221,23 @@ def test_stalled_at_goal_windows():
     near = history(np.full(len(t), 0.02), noise=0.005)  # estimates jitter less close to the goal
     assert stalled(near, patient=False) and stalled(near, patient=True)
     assert not stalled(stuck[:150], patient=True)  # 15 s: not patient enough yet
+
+
+def test_settle_needs_the_image_to_agree():
+    """Converged steps count only while the image agrees; the servo believing it arrived while the
+    image disagrees counts as a false arrival (a look-alike place)."""
+    import types
+
+    from topomap.config import NavigateConfig
+    from topomap.navigate import _Settle
+
+    cfg = NavigateConfig()
+    settle = _Settle(cfg)
+    out = types.SimpleNamespace(converged=True, position_error_m=0.01, heading_error_rad=0.0)
+    for k in range(cfg.settle_steps - 1):
+        assert settle.update(k * 0.1, out, True, lambda: True) is None
+    assert settle.update(1.0, out, True, lambda: True) == "precise"
+    fooled = _Settle(cfg)
+    for k in range(3):
+        assert fooled.update(k * 0.1, out, False, lambda: False) is None
+    assert fooled.false_arrival == 3 and fooled.converged_streak == 0

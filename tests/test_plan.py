@@ -244,6 +244,7 @@ def test_planner_wants_a_plan_config(square):
 
 
 # ----------------------------------------------------------------------------- real data
+@pytest.mark.slow
 def test_castle_avoids_its_unverified_edge():
     from topomap.build import build_map
     from topomap.camera import load_camera

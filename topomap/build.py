@@ -46,8 +46,18 @@ from topomap.images import ImageSequence, open_sequence, read_image, to_working_
 from topomap.matching import Verification, verify
 from topomap.parallel import Executor, InlineExecutor
 from topomap.calibration import CALIBRATION_KEY, Calibration
+from topomap.relative_motion import annotate_edges
+from topomap.retrieval import (
+    THUMBNAIL_PATCH,
+    THUMBNAIL_SIZE,
+    BowIndex,
+    GlobalDescriptors,
+    Vocabulary,
+    make_thumbnail,
+    thumbnail_descriptor,
+    vocabulary_size,
+)
 from topomap.self_supervision import calibrate_map
-from topomap.retrieval import BowIndex, GlobalDescriptors, Vocabulary, make_thumbnail, thumbnail_descriptor, vocabulary_size
 
 __all__ = ["BuildProgress", "FrameTask", "PreparedFrame", "build_map", "build_index", "prepare_frame",
            "calibrate", "descriptor_size", "index_global_descriptors", "make_thumbnail", "teach_world_record", "TEACH_WORLD_KEY"]
@@ -55,11 +65,13 @@ __all__ = ["BuildProgress", "FrameTask", "PreparedFrame", "build_map", "build_in
 log = logging.getLogger(__name__)
 
 #: Width of the whole-image (patch-normalised thumbnail) descriptor [px]; height follows the aspect.
-DESCRIPTOR_WIDTH = 32
-DESCRIPTOR_PATCH = 8
+DESCRIPTOR_WIDTH = THUMBNAIL_SIZE[0]
+DESCRIPTOR_PATCH = THUMBNAIL_PATCH
 #: Frames with a side shorter than this are skipped: neither keypoints nor the whole-image
 #: descriptor (DESCRIPTOR_WIDTH px wide) carry information below it [px].
 MIN_IMAGE_PX = 32
+#: A map whose keyframes hold fewer descriptors than this in all gets no vocabulary index.
+MIN_INDEX_DESCRIPTORS = 64
 
 
 @dataclass(frozen=True)
@@ -414,6 +426,7 @@ def build_map(
     new_ids = [n for n in sorted(tmap.nodes) if n >= first_node]
     build_index(tmap, on_progress, executor=executor)
     loops = _close_loops(tmap, new_ids, config, on_progress, executor=executor)
+    annotate_edges(tmap, executor=executor)  # the keyframe pairs' geometry, read by the navigator
     calibrate(tmap, on_progress)
     tmap.sequences.append(
         {
@@ -497,7 +510,7 @@ def build_index(tmap: TopoMap, on_progress: Callable[[BuildProgress], None] | No
     index_global_descriptors(tmap)
     feats = {n.id: n.features for n in tmap.nodes.values()}
     desc = [f.descriptors for f in feats.values() if len(f)]
-    if sum(len(d) for d in desc) < 64:
+    if sum(len(d) for d in desc) < MIN_INDEX_DESCRIPTORS:
         tmap.index = None
         return None
     cfg = tmap.config

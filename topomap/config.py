@@ -11,6 +11,7 @@ Presets are plain dicts of ready-made configs: ``BUILD_PRESETS["default"]``. An 
 from __future__ import annotations
 
 import dataclasses
+import enum
 import types
 import typing
 from dataclasses import dataclass, field
@@ -27,6 +28,40 @@ __all__ = [
     "to_dict",
     "from_dict",
 ]
+
+
+class ScaleConvention(str, enum.Enum):
+    """What the unknown scale lambda of a relative pose is (:mod:`topomap.servo.pose`)."""
+
+    MEDIAN_DEPTH = "median_depth"  # the goal image's median inlier depth
+    CAMERA_HEIGHT = "camera_height"  # the camera's height above the (visible, textured) floor
+
+
+def scale_convention(name: str | ScaleConvention) -> ScaleConvention:
+    """Parse a scale convention name; an unknown one lists the valid choices."""
+    if isinstance(name, ScaleConvention):
+        return name
+    try:
+        return ScaleConvention(str(name).lower())
+    except ValueError:
+        raise unknown_choice("scale convention", name, [s.value for s in ScaleConvention]) from None
+
+
+class UnicycleLaw(str, enum.Enum):
+    """The unicycle's steering law away from the goal (docs/theory.md section 3, :mod:`topomap.servo.laws`)."""
+
+    SCALE_FREE = "scale_free"  # steers with the observed ratio (v + d_v) / e: right for any scale
+    AICARDI = "aicardi"  # Aicardi's nominal law: exact only when lambda = nominal_scale_m
+
+
+def parse_unicycle_law(name: str | UnicycleLaw) -> UnicycleLaw:
+    """Parse a unicycle law name; an unknown one lists the valid choices."""
+    if isinstance(name, UnicycleLaw):
+        return name
+    try:
+        return UnicycleLaw(str(name).lower())
+    except ValueError:
+        raise unknown_choice("unicycle law", name, [s.value for s in UnicycleLaw]) from None
 
 
 #: Most keypoints per image: 100k SIFT descriptors already take 51 MB per image.
@@ -308,7 +343,7 @@ def from_dict(cls, data: dict):
 # (docs/theory.md section 3; used by topomap.servo)
 @dataclass(frozen=True)
 class RelativePoseConfig:
-    """Planar relative pose from matched points (see :mod:`topomap.servo.geometry`)."""
+    """Planar relative pose from matched points (see :mod:`topomap.servo.relpose`)."""
 
     ransac_px: float = 1.5  # inlier threshold on the reprojection error (depth eliminated) [px]
     ransac_confidence: float = 0.999
@@ -316,7 +351,7 @@ class RelativePoseConfig:
     ransac_min_iters: int = 128  # ... and at least (wrong-heading models can gather many inliers)
     min_inliers: int = 12  # fewer inliers than this = TOO_FEW_INLIERS (3 is the bare minimum)
     seed: int = 0  # RANSAC random state
-    scale: str = "median_depth"  # what lambda is: median_depth | camera_height (geometry docstring)
+    scale: ScaleConvention = ScaleConvention.MEDIAN_DEPTH  # what lambda is (a name is accepted too)
     # The translation counts as observable when it explains the inliers this much better than a
     # pure rotation does (trimmed F statistic; ~1 means no evidence); otherwise PURE_ROTATION.
     rotation_f_ratio: float = 1.5
@@ -342,8 +377,7 @@ class RelativePoseConfig:
             raise ConfigError("ransac_max_iters must be at least 1")
         if self.min_inliers < 3:
             raise ConfigError(f"min_inliers={self.min_inliers} must be at least 3 (docs/theory.md section 3)")
-        if self.scale not in ("median_depth", "camera_height"):
-            raise unknown_choice("scale convention", self.scale, ["median_depth", "camera_height"])
+        object.__setattr__(self, "scale", scale_convention(self.scale))
         if self.rotation_f_ratio <= 1:
             raise ConfigError(f"rotation_f_ratio={self.rotation_f_ratio} must exceed 1")
         if not 0 < self.floor_fraction <= 1:
@@ -352,7 +386,7 @@ class RelativePoseConfig:
 
 @dataclass(frozen=True)
 class ObserverConfig:
-    """Disturbance observer (see :mod:`topomap.servo.observer`); noise levels of its Kalman filters."""
+    """Disturbance observer (see :mod:`topomap.servo.disturbance`); noise levels of its Kalman filters."""
 
     heading_noise_rad: float = 0.003  # std of one relative-heading measurement [rad]
     position_noise_s: float = 0.004  # std of one scaled-position measurement [lambda]
@@ -380,7 +414,7 @@ class ServoConfig:
     max_turn_rps: float = 0.6  # saturation of omega [rad/s]
     nominal_scale_m: float = 3.0  # lambda_0: metres per scaled unit assumed by the gains [m]
     # unicycle, Aicardi 1995 in polar coordinates (docs/theory.md section 3)
-    unicycle_law: str = "scale_free"  # scale_free (steers with the observed v/e) | aicardi (nominal)
+    unicycle_law: UnicycleLaw = UnicycleLaw.SCALE_FREE  # (a name is accepted too)
     gamma: float = 0.4  # forward gain [1/s]
     k_alpha: float = 1.2  # bearing gain k [1/s]
     h: float = 1.5  # weight of theta_A in the Lyapunov function
@@ -406,8 +440,7 @@ class ServoConfig:
         for name in ("k_i", "integral_limit_mps", "integral_zone_m", "dock_radius_m", "position_tol_m", "heading_tol_deg"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"servo {name}={getattr(self, name)} must not be negative")
-        if self.unicycle_law not in ("aicardi", "scale_free"):
-            raise unknown_choice("unicycle law", self.unicycle_law, ["aicardi", "scale_free"])
+        object.__setattr__(self, "unicycle_law", parse_unicycle_law(self.unicycle_law))
         if self.undock_radius_m < self.dock_radius_m:
             raise ConfigError("undock_radius_m must be at least dock_radius_m")
 
@@ -419,9 +452,9 @@ SERVO_PRESETS: dict[str, ServoConfig] = {
     # The same laws without d_omega cancellation nor integral action (the baseline of the benchmarks).
     "uncompensated": ServoConfig(compensate=False),
     # Aicardi's nominal law (r = gamma cos(alpha): exact only when lambda = nominal_scale_m).
-    "aicardi": ServoConfig(unicycle_law="aicardi"),
+    "aicardi": ServoConfig(unicycle_law=UnicycleLaw.AICARDI),
     # Metric scale from the camera height (needs a textured floor); nominal_scale_m = camera height.
-    "floor": ServoConfig(geometry=RelativePoseConfig(scale="camera_height"), nominal_scale_m=0.7),
+    "floor": ServoConfig(geometry=RelativePoseConfig(scale=ScaleConvention.CAMERA_HEIGHT), nominal_scale_m=0.7),
 }
 
 
@@ -433,7 +466,7 @@ def servo_preset(name: str) -> ServoConfig:
         raise unknown_choice("servo preset", name, SERVO_PRESETS) from None
 
 
-__all__ += ["RelativePoseConfig", "ObserverConfig", "ServoConfig", "SERVO_PRESETS", "servo_preset"]
+__all__ += ["ScaleConvention", "scale_convention", "UnicycleLaw", "parse_unicycle_law", "RelativePoseConfig", "ObserverConfig", "ServoConfig", "SERVO_PRESETS", "servo_preset"]
 
 
 # ---------------------------------------------------------------------- route planning
@@ -556,11 +589,12 @@ class NavigateConfig:
     max_replans: int = 8
     scan_turn_rps: float = 0.5  # turning rate while scanning for a place to localize [rad/s]
     scan_every_s: float = 0.6  # localize attempts while scanning [s]
-    time_budget_s_per_hop: float = 30.0  # the whole navigation may last 60 s + this per route hop [s]
+    time_budget_base_s: float = 60.0  # the whole navigation may last this [s] ...
+    time_budget_s_per_hop: float = 30.0  # ... plus this per route hop [s] (a re-plan restarts the count)
 
     def __post_init__(self) -> None:
         for name in ("control_period_s", "switch_distance_m", "switch_heading_deg", "settle_heading_deg", "subgoal_timeout_s", "scan_turn_rps", "scan_every_s",
-                     "time_budget_s_per_hop"):
+                     "time_budget_base_s", "time_budget_s_per_hop"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"navigate {name} must be positive")
         if not 0 < self.arrive_descriptor_fraction < 1:

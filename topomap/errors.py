@@ -11,12 +11,15 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
+import numpy as np
+
 __all__ = [
     "TopomapError",
     "DatasetError",
     "MapFormatError",
     "MapConflictError",
     "ConfigError",
+    "ShapeError",
     "NodeNotFoundError",
     "NoRouteError",
     "IndexMissingError",
@@ -24,6 +27,7 @@ __all__ = [
     "ClusterError",
     "CalibrationError",
     "unknown_choice",
+    "points_array",
 ]
 
 
@@ -45,6 +49,10 @@ class MapConflictError(TopomapError):
 
 class ConfigError(TopomapError, ValueError):
     """An option or configuration value is invalid (unknown preset, feature kind, vehicle...)."""
+
+
+class ShapeError(TopomapError, ValueError):
+    """An array handed to a public entry point has the wrong number of dimensions, shape or dtype."""
 
 
 class NodeNotFoundError(TopomapError, KeyError):
@@ -73,6 +81,21 @@ class CalibrationError(TopomapError):
 class ClusterError(TopomapError):
     """The workers of a build cannot be reached or cannot do their part (Dask scheduler down, a
     worker that cannot read the images)."""
+
+
+def points_array(a, name: str, rows: int | None = None) -> np.ndarray:
+    """``a`` as an (N, 2) float64 array of real coordinates (``rows``: N must equal it), or a
+    :class:`ShapeError` naming the expected shape. Empty input of any shape is (0, 2): no matches."""
+    arr = np.asarray(a)
+    if arr.dtype.kind not in "iuf":
+        raise ShapeError(f"{name} must hold real numbers (an (N, 2) array), got dtype {arr.dtype}")
+    if arr.size == 0:
+        arr = arr.reshape(0, 2)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ShapeError(f"{name} must be an (N, 2) array of (x, y) points, got shape {arr.shape}")
+    if rows is not None and len(arr) != rows:
+        raise ShapeError(f"{name} has {len(arr)} rows where {rows} are expected: pass the matches row by row")
+    return arr.astype(np.float64, copy=False)
 
 
 def unknown_choice(what: str, value: object, choices: Iterable[str]) -> ConfigError:

@@ -68,7 +68,8 @@ class Edge:
 
     ``inliers``: verified matches between the two keyframes; ``similarity``: inliers / features of
     the smaller keyframe, in [0, 1]; ``flow_px``: median image motion of the inliers [px] — large
-    motion and few inliers make servoing along the edge hard.
+    motion and few inliers make servoing along the edge hard; ``relative_motion``: the two
+    keyframes' planar geometry, JSON-able (:mod:`topomap.relative_motion`), or None.
     """
 
     a: int
@@ -77,6 +78,7 @@ class Edge:
     inliers: int
     similarity: float
     flow_px: float = 0.0
+    relative_motion: dict | None = field(default=None, hash=False)
 
     def __post_init__(self) -> None:
         if self.a == self.b:
@@ -150,11 +152,6 @@ class TopoMap:
     def neighbours(self, node_id: int) -> list[int]:
         self.node(node_id)
         return sorted({e.b if e.a == node_id else e.a for e in self.edges.values() if node_id in (e.a, e.b)})
-
-    def frames_of(self, node_id: int) -> list[FrameRecord]:
-        """Frames represented by this node, in input order."""
-        self.node(node_id)
-        return [f for f in self.frames if f.node == node_id]
 
     def node_of_frame(self, source: str) -> int | None:
         """The node representing the frame with this file name (``None`` if skipped or unknown)."""

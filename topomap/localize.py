@@ -48,7 +48,16 @@ from topomap.features import Features, extract
 from topomap.graph import TopoMap
 from topomap.images import to_gray_u8, to_working_resolution
 from topomap.matching import Verification, match_descriptors_grouped, verify
-from topomap.retrieval import GlobalDescriptors, Vocabulary, hog_descriptor, make_thumbnail, sad, thumbnail_descriptor
+from topomap.retrieval import (
+    THUMBNAIL_PATCH,
+    THUMBNAIL_SIZE,
+    GlobalDescriptors,
+    Vocabulary,
+    hog_descriptor,
+    make_thumbnail,
+    sad,
+    thumbnail_descriptor,
+)
 
 __all__ = [
     "DESCRIPTORS",
@@ -65,7 +74,9 @@ log = logging.getLogger(__name__)
 #: ``descriptor="auto"`` uses the keypoint index only when keyframes typically hold this many
 #: features: fewer words than this make a bag of words noise (Nordland 64x32: ~26 per image).
 MIN_FEATURES_FOR_BOW = 100
-#: Candidates a Localization lists at least (Recall@10 reads them), whatever ``shortlist_k``.
+#: Nodes whose vocabulary words are kept quantised (maps indexed before words were stored) [nodes].
+WORD_CACHE_NODES = 4096
+#: A localization lists at least this many candidates, whatever the verified shortlist's size.
 MIN_CANDIDATES = 10
 
 #: Appearance signals a localizer can rank nodes by (``--descriptor``).
@@ -205,8 +216,8 @@ class Localizer:
             raise IndexMissingError("the map's index does not cover its nodes; rebuild it with `topomap index MAP`")
         self._bow_rows = np.array([tmap.index.row_of(n) for n in self.node_ids]) if self.use_bow else None
         desc_meta = tmap.meta.get("descriptor") or {}
-        self.descriptor_size = tuple(desc_meta.get("size", (32, 24)))
-        self.descriptor_patch = int(desc_meta.get("patch", 8))
+        self.descriptor_size = tuple(desc_meta.get("size", THUMBNAIL_SIZE))
+        self.descriptor_patch = int(desc_meta.get("patch", THUMBNAIL_PATCH))
         if self.use_thumbnail:
             missing = [int(n) for n in self.node_ids if tmap.nodes[int(n)].descriptor is None]
             if missing:
@@ -322,7 +333,7 @@ class Localizer:
         cached = self._node_words.get(node)
         if cached is None or len(cached) != len(f):
             cached = self._node_words[node] = self._vocabulary.quantize(f.descriptors)
-            if len(self._node_words) > 4096:
+            if len(self._node_words) > WORD_CACHE_NODES:
                 self._node_words.popitem(last=False)
         else:
             self._node_words.move_to_end(node)

@@ -66,6 +66,11 @@ class Verification:
         return int(self.inlier_mask.sum())
 
     @property
+    def verified(self) -> bool:
+        """The images verified: at least ``min_inliers`` epipolar inliers (:func:`verify` keeps none otherwise)."""
+        return self.F is not None
+
+    @property
     def inlier_ratio(self) -> float:
         return self.inliers / len(self.matches) if len(self.matches) else 0.0
 

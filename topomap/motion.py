@@ -14,9 +14,23 @@ import enum
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from topomap.errors import unknown_choice
 
-__all__ = ["VehicleKind", "Command", "vehicle_kind"]
+__all__ = ["VehicleKind", "Command", "vehicle_kind", "wrap_angle", "saturate"]
+
+
+def wrap_angle(a):
+    """Angle(s) [rad] wrapped to [-pi, pi): a float for a scalar, an array for an array."""
+    if np.ndim(a):
+        return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+    return (float(a) + math.pi) % (2 * math.pi) - math.pi
+
+
+def saturate(x: float, limit: float) -> float:
+    """``x`` clipped to ``[-limit, limit]`` (one channel of a command)."""
+    return max(-limit, min(limit, x))
 
 
 class VehicleKind(str, enum.Enum):
@@ -59,9 +73,7 @@ class Command:
 
     def clipped(self, max_speed_mps: float, max_turn_rps: float) -> Command:
         """The same command with each channel saturated to the given limits."""
-        def clip(x, m):
-            return max(-m, min(m, x))
-        return Command(clip(self.v_f, max_speed_mps), clip(self.v_h, max_speed_mps), clip(self.omega, max_turn_rps))
+        return Command(saturate(self.v_f, max_speed_mps), saturate(self.v_h, max_speed_mps), saturate(self.omega, max_turn_rps))
 
     def for_vehicle(self, kind: VehicleKind) -> Command:
         """Drop the sideways channel for a unicycle."""

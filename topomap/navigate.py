@@ -20,12 +20,13 @@ counts as reached — and the next node becomes the target — when
 The final goal is reached when the servo reports convergence for ``settle_steps`` periods in a row,
 or when, aligned and close, it stops making progress (``settle_*`` in
 :class:`~topomap.config.NavigateConfig`: a docked unicycle cannot remove a small sideways offset) —
-and in both cases only if the image agrees: the verified matches with the goal keyframe have moved
-less than ``arrive_image_error`` of the image width. Facing a single wall the planar relative pose is
-ambiguous, so the pose estimate alone cannot certify arrival.
+and in both cases only if the image agrees (:class:`~topomap.agreement.GoalAgreement`): the verified
+matches with the goal keyframe have moved less than ``arrive_image_error`` of the image width. Facing
+a single wall the planar relative pose is ambiguous, so the pose estimate alone cannot certify arrival.
 The disturbance estimates carry from one subgoal to the next, and so does the heading: at a switch
 the heading relative to the new subgoal is predicted from the heading relative to the old one and
-the two keyframes' relative heading (their images' planar geometry), so a vehicle that does not
+the two keyframes' relative heading (their images' planar geometry, stored on the map's edges:
+:mod:`topomap.relative_motion`), so a vehicle that does not
 see the new subgoal yet — at a corner the next keyframe may lie a turn away — turns toward it
 instead of holding still (:meth:`~topomap.servo.servo.AppearanceServo.reacquire_command`).
 
@@ -40,27 +41,32 @@ import enum
 import logging
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Protocol
 
-import networkx as nx
 import numpy as np
 
+from topomap.agreement import GoalAgreement
 from topomap.camera import CameraIntrinsics
 from topomap.config import LocalizeConfig, NavigateConfig, PlanConfig, ServoConfig
 from topomap.errors import NoRouteError
 from topomap.graph import TopoMap
 from topomap.localize import Localization, Localizer, Query
 from topomap.matching import Verification, verify
-from topomap.retrieval import sad
 from topomap.motion import STOP, Command, VehicleKind, vehicle_kind
 from topomap.plan import Planner, Route
-from topomap.servo.geometry import PoseStatus, RelativePose, relative_pose, wall_normals
+from topomap.relative_motion import KeyframePairs
+from topomap.servo.pose import PoseStatus
 from topomap.servo.servo import AppearanceServo, ServoOutput, ServoStatus
 
 __all__ = ["RobotLike", "NavStatus", "EventKind", "NavEvent", "NavOutcome", "Navigator"]
 
 log = logging.getLogger(__name__)
+
+#: A waypoint's undocking radius is at least this multiple of its (wide) docking radius.
+WAYPOINT_UNDOCK_FACTOR = 1.7
+#: The settle window counts only when at least this fraction of its steps has a pose estimate.
+SETTLE_MIN_VALID_FRACTION = 0.8
 
 
 class RobotLike(Protocol):
@@ -139,6 +145,69 @@ class _Failed(Exception):
         self.status = status
 
 
+class _Settle:
+    """Has the robot arrived at the final goal? (``settle_*`` of :class:`~topomap.config.NavigateConfig`.)
+
+    Arrived when the servo reports convergence for ``settle_steps`` periods in a row, or when,
+    aligned and close, it stops making progress — and in both cases only if the image agrees. A
+    unicycle that stalls further out (within ``settle_patience_max_m``) settles there if the image
+    agrees within the looser ``settle_patience_image_error``. ``false_arrival`` counts the periods
+    in a row the servo believed it had arrived while the image disagreed (a look-alike place)."""
+
+    def __init__(self, config: NavigateConfig):
+        self.config = config
+        self.history: list[tuple[float, float, float]] = []  # (time, estimated distance, heading)
+        self.converged_streak = 0
+        self.false_arrival = 0
+
+    def update(self, time_s: float, s: ServoOutput, image_ok: bool, loosely_agrees) -> str | None:
+        """One period at the goal; ``loosely_agrees()``: the image agrees within the patience bound
+        (asked only when needed). Returns ``"precise"``, ``"settled"`` or None (not there yet)."""
+        cfg = self.config
+        self.converged_streak = self.converged_streak + 1 if (s.converged and image_ok) else 0
+        self.history.append((time_s, s.position_error_m, s.heading_error_rad))
+        stalled = self.stalled(cfg.settle_max_m, cfg.settle_window_s, cfg.settle_progress_m)
+        self.false_arrival = self.false_arrival + 1 if ((s.converged or stalled) and not image_ok) else 0
+        if self.converged_streak >= cfg.settle_steps or (image_ok and stalled):
+            return "precise"
+        if (self.stalled(cfg.settle_patience_max_m, cfg.settle_patience_s, cfg.settle_patience_progress_m)
+                and loosely_agrees()):
+            return "settled"
+        return None
+
+    def stalled(self, max_m: float, window_s: float, progress_m: float) -> bool:
+        """Aligned, within ``max_m``, and less than ``progress_m`` of progress over ``window_s``.
+
+        Medians, not extremes: under noisy disturbances the per-image estimates jitter by a few
+        centimetres and degrees around a pose the servo can no longer improve."""
+        history = self.history
+        now = history[-1][0]
+        if now - history[0][0] < window_s:
+            return False
+        window = np.array([h[1:] for h in history if h[0] >= now - window_s])
+        ok = np.isfinite(window).all(axis=1)
+        if ok.mean() < SETTLE_MIN_VALID_FRACTION:
+            return False
+        dist, head = window[ok, 0], np.abs(window[ok, 1])
+        half = len(dist) // 2
+        progress = abs(float(np.median(dist[:half])) - float(np.median(dist[half:]))) if half else math.inf
+        return bool(np.median(head) < math.radians(self.config.settle_heading_deg) and np.median(dist) < max_m
+                    and progress < progress_m)
+
+
+@dataclass
+class _Leg:
+    """The state of following one route (reset at every re-plan): ``nodes[i]`` is the subgoal,
+    ``lost`` the periods in a row without usable geometry, ``since_switch_s`` when the subgoal became
+    the target."""
+
+    nodes: list[int]
+    settle: _Settle
+    since_switch_s: float
+    i: int = 0
+    lost: int = 0
+
+
 class Navigator:
     """Drives a robot to a goal node of ``tmap`` from images alone.
 
@@ -167,20 +236,21 @@ class Navigator:
         # Waypoints need no precise docking: inside switch_distance_m the servo only turns to the
         # subgoal's heading (at the teach run's corners consecutive nodes differ by a turn).
         dock = max(base.dock_radius_m, self.config.switch_distance_m)
-        self._waypoint_servo = {"dock_radius_m": dock, "undock_radius_m": max(base.undock_radius_m, 1.7 * dock)}
+        self._waypoint_servo = {"dock_radius_m": dock, "undock_radius_m": max(base.undock_radius_m, WAYPOINT_UNDOCK_FACTOR * dock)}
         self._goal_servo = {"dock_radius_m": base.dock_radius_m, "undock_radius_m": base.undock_radius_m}
         self.localizer = localizer or Localizer(tmap, localize_config or LocalizeConfig())
         self.planner = Planner(tmap, plan_config or PlanConfig())
+        # keyframe-pair geometry: stored on the map's edges, computed for maps without it
+        self.pairs = KeyframePairs(tmap, self.servo.config.geometry)
+        self.agreement = GoalAgreement(tmap, self.config.arrive_image_error, self.config.arrive_descriptor_fraction)
         # the robot's images are processed at the map's working resolution
         self.camera = robot.camera.fitted_to(*tmap.working_size)
         self.outcome = NavOutcome()
         self._time = 0.0
         self._last_command: Command | None = None
         self._estimate = None  # the servo's latest disturbance estimate
-        self._neighbour_sad: dict[int, float] = {}
-        self._away: dict[int, np.ndarray | None] = {}
-        self._geometry: dict[int, tuple[tuple[float, ...], float | None]] = {}
-        self._pair_pose: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, RelativePose] | None] = {}
+        self._here: int | None = None  # the node the robot was last localized at
+        self._approach_side: float | None = None  # side of the subgoal camera the robot comes from
         height = self.config.camera_height_m
         self._camera_height_m = height if height is not None else getattr(robot, "camera_height_m", None)
 
@@ -257,7 +327,7 @@ class Navigator:
             out.route = tuple(route.nodes)
             yield NavEvent(EventKind.PLANNED, self._time, f"route of {route.hops} hops: {list(route.nodes)}",
                            subgoal=route.nodes[0], route=tuple(route.nodes))
-            budget = 60.0 + self.config.time_budget_s_per_hop * max(1, route.hops)
+            budget = self.config.time_budget_base_s + self.config.time_budget_s_per_hop * max(1, route.hops)
             yield from self._follow(route, goal, budget)
         except _Failed as f:
             self._move(STOP)
@@ -272,27 +342,29 @@ class Navigator:
         goal; ``heading_prior``: the predicted heading relative to it [rad], if any."""
         # the side of the subgoal camera the robot comes from: behind it (x < 0) when following the
         # taught direction, in front of it when driving the route backwards
-        self._approach_side: float | None = None
-        normals, scale = self._goal_geometry(nodes[i])
+        self._approach_side = None
+        normals, scale = self.pairs.goal_view(nodes[i], self._camera_height_m, self.servo.config.nominal_scale_m)
         self.servo.retarget(normals, scale if i == len(nodes) - 1 else None, heading_prior)  # metric at the goal
         self.servo.reconfigure(**(self._goal_servo if i == len(nodes) - 1 else self._waypoint_servo))
 
+    def _start_leg(self, nodes: list[int]) -> _Leg:
+        """The one place a route's loop state starts (first plan and every re-plan)."""
+        leg = _Leg(list(nodes), _Settle(self.config), self._time)
+        self._target(leg.nodes, leg.i)
+        return leg
+
     def _follow(self, route: Route, goal: int, budget_s: float) -> Iterator[NavEvent]:
         cfg, out = self.config, self.outcome
-        nodes = list(route.nodes)
-        i = 0  # index of the current subgoal in nodes
-        lost = converged_streak = false_arrival = 0
-        since_switch = self._time
-        history: list[tuple[float, float, float]] = []  # (time, estimated distance, heading) at the goal
-        self._target(nodes, i)
+        leg = self._start_leg(route.nodes)
         while True:
+            nodes, i = leg.nodes, leg.i
             if self._time > budget_s:
                 raise _Failed(NavStatus.TIMEOUT, f"time budget of {budget_s:.0f} s exhausted at subgoal {nodes[i]}")
             sub = nodes[i]
             final = i == len(nodes) - 1
             image, q = self._look()
             v = self._match(q, sub)
-            use = v.inlier_matches if v.inliers >= self.map.config.match.min_inliers else v.matches
+            use = v.inlier_matches if v.verified else v.matches
             cur_px, goal_px = q.features.keypoints[use.ia], self.map.nodes[sub].features.keypoints[use.ib]
             s = self.servo.step(cur_px, goal_px, self.camera, cfg.control_period_s, self._last_command,
                                 goal_camera=self.map.camera)
@@ -304,22 +376,14 @@ class Navigator:
 
             # -- final goal: settle
             if final:
-                image_ok = self._image_agrees(q, v, sub)
-                converged_streak = converged_streak + 1 if (s.converged and image_ok) else 0
-                history.append((self._time, s.position_error_m, s.heading_error_rad))
-                stalled = self._stalled_at_goal(history)
-                # the servo believes it is there but the image disagrees: a look-alike place
-                false_arrival = false_arrival + 1 if ((s.converged or stalled) and not image_ok) else 0
-                precise = converged_streak >= cfg.settle_steps or (image_ok and stalled)
-                settled = not precise and (
-                    self._stalled_at_goal(history, cfg.settle_patience_max_m, cfg.settle_patience_s,
-                                          cfg.settle_patience_progress_m)
-                    and self._image_agrees(q, v, sub, cfg.settle_patience_image_error))
-                if precise or settled:
+                arrived = leg.settle.update(
+                    self._time, s, self.agreement.agrees(q, v, sub),
+                    lambda: self.agreement.agrees(q, v, sub, cfg.settle_patience_image_error))
+                if arrived:
                     self._move(STOP)
                     out.status = NavStatus.ARRIVED
                     out.message = f"arrived at node {goal}" + (
-                        "" if precise else f" (settled {s.position_error_m:.2f} m off by its estimate: no further progress)")
+                        "" if arrived == "precise" else f" (settled {s.position_error_m:.2f} m off by its estimate: no further progress)")
                     yield NavEvent(EventKind.ARRIVED, self._time, out.message, subgoal=goal, route=tuple(nodes))
                     return
             # -- intermediate subgoal: switch?
@@ -329,20 +393,20 @@ class Navigator:
                     # heading relative to the next subgoal = relative to this one + this one's relative to it
                     here = s.heading_error_rad if math.isfinite(s.heading_error_rad) else s.disturbance.theta
                     prior = here + self._keyframe_heading(sub, nodes[i + 1]) if math.isfinite(here) else None
-                    i += 1
+                    leg.i += 1
                     out.subgoals_reached += 1
-                    since_switch = self._time
-                    lost = 0
-                    self._target(nodes, i, prior if prior is not None and math.isfinite(prior) else None)
-                    yield NavEvent(EventKind.SUBGOAL, self._time, f"reached {sub} ({reason}); next {nodes[i]}",
-                                   subgoal=nodes[i], route=tuple(nodes))
+                    leg.since_switch_s = self._time
+                    leg.lost = 0
+                    self._target(nodes, leg.i, prior if prior is not None and math.isfinite(prior) else None)
+                    yield NavEvent(EventKind.SUBGOAL, self._time, f"reached {sub} ({reason}); next {nodes[leg.i]}",
+                                   subgoal=nodes[leg.i], route=tuple(nodes))
                     continue
             # -- lost or stuck: re-localize and re-plan
-            lost = lost + 1 if s.status is ServoStatus.LOST else 0
-            stuck = self._time - since_switch > cfg.subgoal_timeout_s and not final
-            fooled = false_arrival >= cfg.lost_after_steps
-            if lost >= cfg.lost_after_steps or stuck or fooled:
-                why = ("lost sight of" if lost >= cfg.lost_after_steps else
+            leg.lost = leg.lost + 1 if s.status is ServoStatus.LOST else 0
+            stuck = self._time - leg.since_switch_s > cfg.subgoal_timeout_s and not final
+            fooled = leg.settle.false_arrival >= cfg.lost_after_steps
+            if leg.lost >= cfg.lost_after_steps or stuck or fooled:
+                why = ("lost sight of" if leg.lost >= cfg.lost_after_steps else
                        "was fooled by a look-alike of" if fooled else "could not reach")
                 prev = nodes[i - 1] if i > 0 else None
                 if prev is not None:
@@ -354,134 +418,19 @@ class Navigator:
                 self._hold()
                 yield from self._localize()
                 new = self._plan(self._here, goal)
-                budget_s = max(budget_s, self._time + 60.0 + cfg.time_budget_s_per_hop * max(1, new.hops))
-                nodes, i = list(new.nodes), 0
-                out.route = tuple(nodes)
-                lost = converged_streak = false_arrival = 0
-                history = []
-                since_switch = self._time
-                self._target(nodes, i)
-                yield NavEvent(EventKind.REPLANNED, self._time, f"new route {nodes}", subgoal=nodes[0], route=tuple(nodes))
+                budget_s = max(budget_s, self._time + cfg.time_budget_base_s + cfg.time_budget_s_per_hop * max(1, new.hops))
+                out.route = tuple(new.nodes)
+                leg = self._start_leg(new.nodes)
+                yield NavEvent(EventKind.REPLANNED, self._time, f"new route {leg.nodes}", subgoal=leg.nodes[0],
+                               route=tuple(leg.nodes))
                 continue
             self._move(s.command)
-
-    def _goal_geometry(self, node: int) -> tuple[tuple[float, ...], float | None]:
-        """What the node keyframe's graph neighbours tell about its view (cached): the normals of its
-        wall, and its scale (metres per scaled unit) when the camera height is known.
-
-        Normals: each neighbour that sees the keyframe's view as one plane allows two, the wall's and
-        a false one that depends on where the neighbour was taken; the servo keeps the pose whose
-        normal agrees (:func:`~topomap.servo.geometry.choose_plane_solution`). Scale: each
-        neighbour's position measured in both conventions, camera height (floor points) over median
-        depth; the median of those, clipped to 1/3..3 times the nominal scale."""
-        if node not in self._geometry:
-            geo = self.servo.config.geometry
-            floor, plain = replace(geo, scale="camera_height"), replace(geo, plane_inlier_fraction=1.0)
-            normals: list[float] = []
-            scales: list[float] = []
-            for nb in self.map.neighbours(node):
-                pair = self._keyframe_pose(nb, node)
-                if pair is None:
-                    continue
-                cur, dst, pose = pair
-                normals += wall_normals(pose, geo.plane_min_t_over_d)
-                if self._camera_height_m is not None:
-                    # without plane solutions the pose is the essential matrix's already
-                    a = relative_pose(cur, dst, self.map.camera, plain) if pose.plane_solutions else pose
-                    b = relative_pose(cur, dst, self.map.camera, floor)
-                    if a.status is PoseStatus.OK and b.status is PoseStatus.OK and a.rho_s > 1e-3:
-                        scales.append(self._camera_height_m * b.rho_s / a.rho_s)
-            scale = None
-            if scales:
-                nominal = self.servo.config.nominal_scale_m
-                scale = float(np.clip(np.median(scales), nominal / 3.0, 3.0 * nominal))
-            self._geometry[node] = (tuple(normals), scale)
-        return self._geometry[node]
-
-    def _keyframe_pose(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray, RelativePose] | None:
-        """Keyframe ``a`` seen from keyframe ``b`` (cached): the verified matches' pixels in ``a`` and
-        in ``b`` and the servo's planar pose of ``a`` in ``b``'s frame; None when they do not verify.
-        Shared by the goal geometry (neighbour -> goal) and the heading prediction (subgoal -> next)."""
-        if (a, b) not in self._pair_pose:
-            fa, fb = self.map.nodes[a].features, self.map.nodes[b].features
-            v = verify(fa, fb, self.map.config.match)
-            pair = None
-            if v.inliers >= self.map.config.match.min_inliers:
-                cur, dst = fa.keypoints[v.inlier_matches.ia], fb.keypoints[v.inlier_matches.ib]
-                pair = (cur, dst, relative_pose(cur, dst, self.map.camera, self.servo.config.geometry))
-            self._pair_pose[(a, b)] = pair
-        return self._pair_pose[(a, b)]
 
     def _keyframe_heading(self, a: int, b: int) -> float:
         """Heading of keyframe ``a`` relative to keyframe ``b`` from their images [rad]; NaN when
         their matches give no planar pose."""
-        pair = self._keyframe_pose(a, b)
-        if pair is None or pair[2].status not in (PoseStatus.OK, PoseStatus.PURE_ROTATION):
-            return math.nan
-        return pair[2].theta
-
-    def _image_agrees(self, q: Query, v: Verification, node: int, flow_bound: float | None = None) -> bool:
-        """The current image shows the node's keyframe view: verified matches barely moved
-        (``flow_bound``, default ``arrive_image_error``, of the width) and the whole-image descriptor is
-        close (``arrive_descriptor_fraction`` of the distance between the keyframe and its neighbours)."""
-        cfg = self.config
-        bound = cfg.arrive_image_error if flow_bound is None else flow_bound
-        if v.inliers < self.map.config.match.min_inliers or v.flow_px >= bound * self.map.working_size[0]:
-            return False
-        goal_desc = self.map.nodes[node].descriptor
-        if goal_desc is None or q.descriptor.size != goal_desc.size:
-            return True  # no whole-image descriptor to compare
-        d_goal = float(sad(q.descriptor, goal_desc[None])[0])
-        if d_goal < cfg.arrive_descriptor_fraction * self._neighbour_distance(node):
-            return True
-        # where neighbouring keyframes look much alike, the bound above is tight: then it is enough
-        # that no place away from the goal (beyond two hops) looks more like the current image
-        others = self._away_descriptors(node)
-        return others is None or d_goal < float(sad(q.descriptor, others).min())
-
-    def _away_descriptors(self, node: int) -> np.ndarray | None:
-        """Thumbnail descriptors of the nodes more than two hops from ``node`` (cached), or None."""
-        if node not in self._away:
-            near = set(nx.single_source_shortest_path_length(self.map.graph, node, cutoff=2))
-            own = self.map.nodes[node].descriptor
-            rows = [n.descriptor for i, n in self.map.nodes.items()
-                    if i not in near and n.descriptor is not None and n.descriptor.size == own.size]
-            self._away[node] = np.stack(rows) if rows else None
-        return self._away[node]
-
-    def _neighbour_distance(self, node: int) -> float:
-        """Median thumbnail distance between a node's keyframe and its neighbours' (cached)."""
-        if node not in self._neighbour_sad:
-            own = self.map.nodes[node].descriptor
-            others = [self.map.nodes[n].descriptor for n in self.map.neighbours(node)]
-            others = [d for d in others if d is not None and d.size == own.size]
-            # patch-normalised thumbnails of unrelated images differ by ~2/sqrt(pi) = 1.13 (mean |N(0,2)|)
-            self._neighbour_sad[node] = float(np.median(sad(own, np.stack(others)))) if others else 2 / math.sqrt(math.pi)
-        return self._neighbour_sad[node]
-
-    def _stalled_at_goal(self, history: list[tuple[float, float, float]], max_m: float | None = None,
-                         window_s: float | None = None, progress_m: float | None = None) -> bool:
-        """Aligned, close, and no progress over the settle window (see NavigateConfig.settle_*;
-        ``max_m, window_s, progress_m`` default to ``settle_max_m, settle_window_s, settle_progress_m``).
-
-        Medians, not extremes: under noisy disturbances the per-image estimates jitter by a few
-        centimetres and degrees around a pose the servo can no longer improve."""
-        cfg = self.config
-        max_m = cfg.settle_max_m if max_m is None else max_m
-        window_s = cfg.settle_window_s if window_s is None else window_s
-        progress_m = cfg.settle_progress_m if progress_m is None else progress_m
-        now = history[-1][0]
-        if now - history[0][0] < window_s:
-            return False
-        window = np.array([h[1:] for h in history if h[0] >= now - window_s])
-        ok = np.isfinite(window).all(axis=1)
-        if ok.mean() < 0.8:
-            return False
-        dist, head = window[ok, 0], np.abs(window[ok, 1])
-        half = len(dist) // 2
-        progress = abs(float(np.median(dist[:half])) - float(np.median(dist[half:]))) if half else math.inf
-        return bool(np.median(head) < math.radians(cfg.settle_heading_deg) and np.median(dist) < max_m
-                    and progress < progress_m)
+        pair = self.pairs.motion(a, b)
+        return math.nan if pair is None else pair.theta_rad
 
     def _switch_reason(self, q: Query, s: ServoOutput, nxt: int, v: Verification) -> str:
         """Why the current intermediate subgoal counts as reached, or ``""``."""

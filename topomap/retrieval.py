@@ -29,8 +29,15 @@ import scipy.sparse as sp
 from topomap.errors import MapFormatError
 from topomap.features import Features, detector, hamming
 
-__all__ = ["Vocabulary", "BowIndex", "GlobalDescriptors", "vocabulary_size", "thumbnail_descriptor", "sad", "hog_descriptor",
-           "hog_size", "make_thumbnail"]
+#: Whole-image descriptor: thumbnail ``(w, h)`` [px] of a 4:3 image (maps whose meta omits it) ...
+THUMBNAIL_SIZE = (32, 24)
+#: ... and the side of its normalisation patches [px].
+THUMBNAIL_PATCH = 8
+#: Seed offset between vocabulary levels (a prime, so no two clusters' k-means share a seed).
+KMEANS_SEED_STRIDE = 7919
+
+__all__ = ["Vocabulary", "BowIndex", "GlobalDescriptors", "vocabulary_size", "thumbnail_descriptor", "sad",
+           "hog_descriptor", "hog_size", "make_thumbnail"]
 
 #: Minimum descriptors per visual word when sizing a vocabulary from a map's own descriptors.
 DESCRIPTORS_PER_WORD = 8
@@ -122,11 +129,11 @@ class Vocabulary:
             level_centres, level_groups, kids = [], [], []
             jobs = [(g, rows) for g, rows in enumerate(groups) if 2 <= min(k, len(rows)) < len(rows)]
             if mapper is not None and len(jobs) > 1:  # packed descriptors travel, 8x less than bits
-                items = [(descriptors[rows] if det.binary else bits[rows], min(k, len(rows)), seed + 7919 * level + g, det.binary)
+                items = [(descriptors[rows] if det.binary else bits[rows], min(k, len(rows)), seed + KMEANS_SEED_STRIDE * level + g, det.binary)
                          for g, rows in jobs]
                 split = dict(zip((g for g, _ in jobs), mapper(_kmeans_job, items)))
             else:
-                split = {g: _kmeans(bits[rows], min(k, len(rows)), seed + 7919 * level + g) for g, rows in jobs}
+                split = {g: _kmeans(bits[rows], min(k, len(rows)), seed + KMEANS_SEED_STRIDE * level + g) for g, rows in jobs}
             for g, rows in enumerate(groups):
                 m = len(rows)
                 kk = min(k, m)
@@ -473,7 +480,7 @@ def make_thumbnail(image: np.ndarray, longest_px: int) -> np.ndarray:
     return cv2.resize(image, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
 
 
-def thumbnail_descriptor(image: np.ndarray, size: tuple[int, int] = (32, 24), patch: int = 8) -> np.ndarray:
+def thumbnail_descriptor(image: np.ndarray, size: tuple[int, int] = THUMBNAIL_SIZE, patch: int = THUMBNAIL_PATCH) -> np.ndarray:
     """Patch-normalised thumbnail (SeqSLAM): ``(H, W) uint8`` image -> ``(w*h,)`` float32 descriptor.
 
     The image is shrunk to ``size = (w, h)`` by area averaging; each ``patch x patch`` block is

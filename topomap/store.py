@@ -881,7 +881,7 @@ def _feature_rows(nodes: Iterable[Node]) -> Iterator[tuple]:
 
 def _edge_rows(edges: Iterable[Edge]) -> Iterator[tuple]:
     for e in edges:
-        motion = getattr(e, "relative_motion", None)  # issue 13's keyframe-pair geometry, when it exists
+        motion = e.relative_motion  # the keyframe pair's geometry (topomap.relative_motion)
         yield (e.a, e.b, e.kind.value, e.inliers, e.similarity, e.flow_px,
                None if motion is None else json.dumps(motion, separators=(",", ":")))
 
@@ -1320,8 +1320,9 @@ def _read_checked(con: sqlite3.Connection, path: Path, version: int, images: boo
         extra = {}
         if motion is not None:
             rm = _json(motion, f"the relative motion of edge {a}-{b}", 100_000)
-            if "relative_motion" in getattr(Edge, "__dataclass_fields__", {}):  # issue 13's field, once it exists
-                extra["relative_motion"] = rm
+            if not isinstance(rm, dict):
+                raise _Bad(f"the relative motion of edge {a}-{b} is not a JSON object")
+            extra["relative_motion"] = rm
         m.edges[(a, b)] = Edge(a, b, ek, inl, sim, flow, **extra)
     frames = []
     for i, (fid, s, si, src, nid, st) in enumerate(_rows(con, "frame", version, order="id")):

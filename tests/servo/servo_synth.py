@@ -183,3 +183,21 @@ def servo_episode(servo, points, start, goal, dist: Disturbance, rng, *, dt=0.1,
         pose = drive(pose, out.command.as_tuple(), dist, t, dt, unicycle)
         last, t = out.command, t + dt
     return relative(pose, goal), outs
+
+
+# ---------------------------------------------------------------------------- one scene for the relative-pose tests
+POINTS = room_points(np.random.default_rng(42))
+GOAL = (0.4, -0.2, 0.3)
+
+
+def in_world(rel, goal=GOAL):
+    """A pose given in the goal frame (x forward, z left, theta) -> world."""
+    c, s = math.cos(goal[2]), math.sin(goal[2])
+    return (goal[0] + c * rel[0] - s * rel[1], goal[1] + s * rel[0] + c * rel[1], goal[2] + rel[2])
+
+
+def normalized_pair(rel, rng, noise_px=0.0, **kw):
+    """Normalised matches (current, goal, indices of the points) of POINTS seen from ``in_world(rel)`` and GOAL."""
+    cur = in_world(rel)
+    cp, gp, idx = matches(POINTS, cur, GOAL, rng, noise_px=noise_px, **kw)
+    return CAMERA.normalize(cp), CAMERA.normalize(gp), idx

@@ -6,14 +6,24 @@ import json
 
 import pytest
 
-from topomap.config import SERVO_PRESETS, RelativePoseConfig, ServoConfig, from_dict, servo_preset, to_dict
+from topomap.config import (
+    SERVO_PRESETS,
+    RelativePoseConfig,
+    ScaleConvention,
+    ServoConfig,
+    UnicycleLaw,
+    from_dict,
+    servo_preset,
+    to_dict,
+)
 from topomap.errors import ConfigError
 
 
 def test_presets_and_unknown_preset():
     assert set(SERVO_PRESETS) >= {"default", "uncompensated"}
     assert servo_preset("uncompensated").compensate is False
-    assert servo_preset("floor").geometry.scale == "camera_height"
+    assert servo_preset("floor").geometry.scale is ScaleConvention.CAMERA_HEIGHT
+    assert servo_preset("aicardi").unicycle_law is UnicycleLaw.AICARDI
     with pytest.raises(ConfigError, match="unknown servo preset 'fast'; choose one of: aicardi, default"):
         servo_preset("fast")
 
@@ -44,3 +54,12 @@ def test_geometry_config_validation():
         RelativePoseConfig(rotation_f_ratio=1.0)
     with pytest.raises(ConfigError, match="unknown ServoConfig option|has no option"):
         from_dict(ServoConfig, {"warp_drive": 1})
+
+
+def test_string_choices_become_enums():
+    """Names (presets, CLI, JSON) are accepted and stored as the enums; unknown names list the choices."""
+    assert RelativePoseConfig(scale="CAMERA_HEIGHT").scale is ScaleConvention.CAMERA_HEIGHT
+    assert ServoConfig(unicycle_law="aicardi") == ServoConfig(unicycle_law=UnicycleLaw.AICARDI)
+    assert json.loads(json.dumps(to_dict(ServoConfig())))["unicycle_law"] == "scale_free"
+    with pytest.raises(ConfigError, match="choose one of: camera_height, median_depth"):
+        RelativePoseConfig(scale="furthest")

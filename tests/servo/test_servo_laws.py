@@ -21,7 +21,7 @@ from topomap.servo.laws import (
     omni_law,
     unicycle_law,
 )
-from topomap.servo.observer import DisturbanceObserver
+from topomap.servo.disturbance import DisturbanceObserver
 
 CFG = servo_preset("default")
 LAM0 = CFG.nominal_scale_m

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from topomap.sim.world import Marker, Rect, Route, Wall, World
+from topomap.sim.world import Marker, Rect, WaypointRoute, Wall, World
 
 
 def box_world(half_m: float = 100.0, markers: tuple[Marker, ...] = (), texture: str = "proc:bricks:1") -> World:
@@ -13,7 +13,7 @@ def box_world(half_m: float = 100.0, markers: tuple[Marker, ...] = (), texture: 
     return World(
         walls=walls,
         free=(Rect(-h, -h, h, h),),
-        routes=(Route("across", ((-h / 2, 0.0), (h / 2, 0.0))),),
+        routes=(WaypointRoute("across", ((-h / 2, 0.0), (h / 2, 0.0))),),
         markers=markers,
         name="box",
     )

@@ -26,7 +26,7 @@ import numpy as np
 import sympy as sp
 
 from topomap.errors import ConfigError, DatasetError
-from topomap.motion import VehicleKind, vehicle_kind
+from topomap.motion import VehicleKind, vehicle_kind, wrap_angle
 from topomap.observability.system import InputKind, input_kind, vehicle_landmark_system
 
 __all__ = [
@@ -108,10 +108,10 @@ class Simulation:
 
     @property
     def error(self) -> np.ndarray:
-        """``estimate - truth``, heading wrapped to (-pi, pi]: ``(T, n)``."""
+        """``estimate - truth``, heading wrapped to [-pi, pi): ``(T, n)``."""
         e = self.estimate - self.truth
         i = self.state_names.index("theta")
-        e[:, i] = _wrap(e[:, i])
+        e[:, i] = wrap_angle(e[:, i])
         return e
 
     def group(self, name: str) -> np.ndarray:
@@ -140,7 +140,7 @@ class Simulation:
         lx, lz = self.landmarks[0]
         phi = np.arctan2(self.truth[:, 1] - lz, self.truth[:, 0] - lx)
         phi_hat = np.arctan2(self.estimate[:, 1] - lz, self.estimate[:, 0] - lx)
-        return _wrap(phi_hat - phi)
+        return wrap_angle(phi_hat - phi)
 
     def settling_time(self, threshold: float = 0.05) -> float | None:
         """First time after which the relative error stays below ``threshold`` (None if never)."""
@@ -169,10 +169,6 @@ class Simulation:
             "rotation_error_final_rad": float(np.max(np.abs(rot[end]))),
             "unobservable_error_final": float(np.max(self.unobservable_error[end])),
         }
-
-
-def _wrap(a):
-    return (np.asarray(a) + math.pi) % (2 * math.pi) - math.pi
 
 
 # ----------------------------------------------------------------------------- symbolic part
@@ -350,17 +346,17 @@ def simulate(
         t = step * dt
         x_true = truth_at(pose, t)
         y_new = bearings_of(x_true)
-        y = y + _wrap(y_new - y)  # unwrapped measurement
+        y = y + wrap_angle(y_new - y)  # unwrapped measurement
         if step % config.record_every == 0:
             Jt = np.asarray(model.jac(x_true, u_arg(t)), dtype=float)
             e = x_hat - x_true
-            e[2] = _wrap(e[2])
+            e[2] = wrap_angle(e[2])
             e_unobs = e - np.linalg.pinv(Jt, rcond=1e-9) @ (Jt @ e)
             rec.append((t, x_true.copy(), x_hat.copy(), y.copy(), float(np.linalg.norm(e_unobs))))
         if step == steps:
             break
         # differentiator (Khalil): z_i' = z_{i+1} + alpha_i / eps^i (y - z_0)
-        innov_y = _wrap(y - zhat[0])
+        innov_y = wrap_angle(y - zhat[0])
         dz = np.empty_like(zhat)
         dz[:-1] = zhat[1:] + (alpha[:-1] / eps_pow[:-1])[:, None] * innov_y[None, :]
         dz[-1] = alpha[-1] / eps_pow[-1] * innov_y
@@ -371,7 +367,7 @@ def simulate(
             phi = np.asarray(model.phi(x_hat, ua), dtype=float).ravel()
             Jh = np.asarray(model.jac(x_hat, ua), dtype=float)
             innov = zhat.ravel() - phi
-            innov[:p] = _wrap(innov[:p])
+            innov[:p] = wrap_angle(innov[:p])
             dx = dx + np.linalg.pinv(Jh, rcond=config.pinv_rcond) @ (gamma * innov)
         if not np.all(np.isfinite(dx)):
             raise ConfigError("the observer diverged (non-finite estimate); lower gain_per_s or raise epsilon_s")

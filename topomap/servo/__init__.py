@@ -8,20 +8,15 @@ Typical use, one call per control period::
 
 The parts are usable on their own: :func:`relative_pose` (planar essential matrix, RANSAC, scaled
 polar pose), the pure laws :func:`unicycle_law` / :func:`omni_law`, and the
-:class:`DisturbanceObserver`.
+:class:`DisturbanceObserver`. Modules: ``relpose`` (the relative pose, in stages) with its solvers
+``essential``, ``homography`` and ``lm`` and its results in ``pose``; ``two_point`` (the dynamic
+2-point mode); ``laws``; ``disturbance`` (the observer); ``servo`` (the loop step).
 """
 
-from topomap.servo.geometry import (
-    PoseStatus,
-    RelativePose,
-    ScaleConvention,
-    TwoPointTracker,
-    relative_pose,
-    relative_pose_normalized,
-    two_point_candidates,
-)
-from topomap.servo.laws import LawState, aicardi_command, aicardi_coordinates, omni_law, unicycle_law
-from topomap.servo.observer import DisturbanceEstimate, DisturbanceObserver
+from topomap.servo.disturbance import DisturbanceEstimate, DisturbanceObserver
+from topomap.servo.laws import omni_law, unicycle_law
+from topomap.servo.pose import PoseStatus, RelativePose, ScaleConvention
+from topomap.servo.relpose import relative_pose
 from topomap.servo.servo import AppearanceServo, ServoOutput, ServoStatus
 
 __all__ = [
@@ -32,12 +27,6 @@ __all__ = [
     "RelativePose",
     "ScaleConvention",
     "relative_pose",
-    "relative_pose_normalized",
-    "two_point_candidates",
-    "TwoPointTracker",
-    "LawState",
-    "aicardi_coordinates",
-    "aicardi_command",
     "unicycle_law",
     "omni_law",
     "DisturbanceEstimate",

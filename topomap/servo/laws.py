@@ -15,8 +15,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from topomap.config import ServoConfig
-from topomap.motion import Command
+from topomap.config import ServoConfig, UnicycleLaw
+from topomap.motion import Command, saturate, wrap_angle
 
 __all__ = [
     "LawState",
@@ -26,14 +26,6 @@ __all__ = [
     "unicycle_law",
     "omni_law",
 ]
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
-def _clip(x: float, m: float) -> float:
-    return max(-m, min(m, x))
 
 
 @dataclass(frozen=True)
@@ -65,7 +57,7 @@ def aicardi_coordinates(x_s: float, z_s: float, theta: float) -> tuple[float, fl
     """
     e = math.hypot(x_s, z_s)
     phi = math.atan2(z_s, x_s)
-    return e, _wrap(phi - theta + math.pi), _wrap(phi + math.pi)
+    return e, wrap_angle(phi - theta + math.pi), wrap_angle(phi + math.pi)
 
 
 def along_track_error(x_s: float, z_s: float, theta: float) -> float:
@@ -119,7 +111,7 @@ def _integrate(value: float, err: float, dt: float, gain: float, limit_mps: floa
     if gain <= 0:
         return 0.0
     bound = limit_mps / (gain * lam0)
-    return _clip(value + err * dt, bound)
+    return saturate(value + err * dt, bound)
 
 
 def unicycle_law(
@@ -173,12 +165,12 @@ def unicycle_law(
     v_i = ki * lam0 * integ
     if aligning:
         d_hat = d_omega_hat if cfg.compensate else 0.0
-        v = _clip(cfg.k_p * lam0 * eps, max(0.0, cfg.max_speed_mps - abs(v_i))) + v_i
-        cmd = Command(v, 0.0, -cfg.k_theta * _wrap(theta) - d_hat).clipped(cfg.max_speed_mps, cfg.max_turn_rps)
+        v = saturate(cfg.k_p * lam0 * eps, max(0.0, cfg.max_speed_mps - abs(v_i))) + v_i
+        cmd = Command(v, 0.0, -cfg.k_theta * wrap_angle(theta) - d_hat).clipped(cfg.max_speed_mps, cfg.max_turn_rps)
     else:
         sgn = -1.0 if reverse else 1.0
         e_s, alpha, theta_a = aicardi_coordinates(sgn * x_s, sgn * z_s, theta)
-        kap = kappa_hat if cfg.unicycle_law == "scale_free" else None
+        kap = kappa_hat if cfg.unicycle_law is UnicycleLaw.SCALE_FREE else None
         c = aicardi_command(
             e_s, alpha, theta_a, cfg, d_omega_hat=d_omega_hat, kappa_hat=kap, mu_hat=sgn * mu_hat, v_extra=sgn * v_i
         )
@@ -217,5 +209,5 @@ def omni_law(
     m = max(abs(v_f), abs(v_h))
     if m > cfg.max_speed_mps:
         v_f, v_h = v_f * cfg.max_speed_mps / m, v_h * cfg.max_speed_mps / m
-    omega = -cfg.k_theta * _wrap(theta) - d_hat
-    return Command(v_f, v_h, _clip(omega, cfg.max_turn_rps)), LawState((ix, iz), False)
+    omega = -cfg.k_theta * wrap_angle(theta) - d_hat
+    return Command(v_f, v_h, saturate(omega, cfg.max_turn_rps)), LawState((ix, iz), False)

@@ -2,9 +2,9 @@
 
 One control step chains the three parts of :mod:`topomap.servo`:
 
-1. :func:`~topomap.servo.geometry.relative_pose` — scaled planar pose of the current camera w.r.t.
+1. :func:`~topomap.servo.relpose.relative_pose` — scaled planar pose of the current camera w.r.t.
    the goal camera from the matched pixels;
-2. :class:`~topomap.servo.observer.DisturbanceObserver` — ``d_omega`` from the heading rate, the
+2. :class:`~topomap.servo.disturbance.DisturbanceObserver` — ``d_omega`` from the heading rate, the
    scaled forward speed ratio for the scale-free law;
 3. :func:`~topomap.servo.laws.unicycle_law` or :func:`~topomap.servo.laws.omni_law`.
 
@@ -27,13 +27,18 @@ from topomap.camera import CameraIntrinsics
 from topomap.config import ServoConfig
 from topomap.errors import ConfigError
 from topomap.motion import STOP, Command, VehicleKind, vehicle_kind
-from topomap.servo.geometry import PoseStatus, RelativePose, choose_plane_solution, relative_pose
+from topomap.servo.homography import choose_plane_solution
+from topomap.servo.pose import PoseStatus, RelativePose
+from topomap.servo.relpose import relative_pose
 from topomap.servo.laws import LawState, omni_law, unicycle_law
-from topomap.servo.observer import DisturbanceEstimate, DisturbanceObserver
+from topomap.servo.disturbance import DisturbanceEstimate, DisturbanceObserver
 
 __all__ = ["ServoStatus", "ServoOutput", "AppearanceServo"]
 
 log = logging.getLogger(__name__)
+
+#: While blind (holding or turning toward the goal) speeds stay below this fraction of max_speed_mps.
+BLIND_SPEED_FRACTION = 0.3
 
 
 class ServoStatus(str, enum.Enum):
@@ -92,7 +97,7 @@ class AppearanceServo:
         """A new goal image: restart pose references, keep the disturbance estimates.
 
         ``wall_normals``: angles [rad] of the goal wall's normal that other views of the goal image
-        allow (:func:`~topomap.servo.geometry.wall_normals`); facing a single wall they decide
+        allow (:func:`~topomap.servo.homography.wall_normals`); facing a single wall they decide
         between the two poses the images allow. ``scale_m``: the goal's scale (metres per scaled
         unit, e.g. its median depth) when known; it turns the estimated distance into metres
         (``position_error_m``, convergence) and sets the laws' metric radii and gains; default
@@ -179,7 +184,7 @@ class AppearanceServo:
         if cmd is STOP or not math.isfinite(est.theta) or abs(est.theta) < math.radians(cfg.heading_tol_deg):
             return cmd
         turn = Command(cmd.v_f, cmd.v_h, -cfg.k_theta * est.theta - est.d_omega).clipped(
-            0.3 * cfg.max_speed_mps, cfg.max_turn_rps)
+            BLIND_SPEED_FRACTION * cfg.max_speed_mps, cfg.max_turn_rps)
         return turn.for_vehicle(self.vehicle)
 
     def hold_command(self, est: DisturbanceEstimate) -> Command:
@@ -188,7 +193,7 @@ class AppearanceServo:
         view it needs to recover."""
         if not self.config.compensate or not est.ready:
             return STOP
-        limit_v, limit_w = 0.3 * self.config.max_speed_mps, self.config.max_turn_rps
+        limit_v, limit_w = BLIND_SPEED_FRACTION * self.config.max_speed_mps, self.config.max_turn_rps
         v_f = v_h = 0.0
         if math.isfinite(est.kappa) and est.kappa > 1e-6:  # drift mu [lambda/s] over kappa [1/m] -> m/s
             v_f, v_h = -est.mu_f / est.kappa, -est.mu_h / est.kappa
@@ -201,7 +206,3 @@ class AppearanceServo:
         if "observer" in changes or "nominal_scale_m" in changes:
             raise ConfigError("the observer settings and the nominal scale cannot change while running; make a new servo")
         self.config = replace(self.config, **changes)
-
-    def with_config(self, **changes) -> AppearanceServo:
-        """A fresh servo for the same vehicle with some configuration fields changed."""
-        return AppearanceServo(self.vehicle, replace(self.config, **changes))

@@ -31,7 +31,7 @@ from topomap.sim.world import (
     WORLD_STYLES,
     Marker,
     Rect,
-    Route,
+    WaypointRoute,
     Wall,
     World,
     default_world,
@@ -42,7 +42,7 @@ from topomap.sim.world import (
 )
 
 __all__ = [
-    "World", "Wall", "Rect", "Route", "Marker", "generate_world", "default_world", "load_world", "resolve_world",
+    "World", "Wall", "Rect", "WaypointRoute", "Marker", "generate_world", "default_world", "load_world", "resolve_world",
     "Renderer", "PyBulletRenderer", "RENDERERS", "make_renderer",
     "Pose", "CAMERA_HEIGHT_M", "camera_from_world", "project_world_points",
     "DisturbanceConfig", "DISTURBANCE_PRESETS", "disturbance_preset", "parse_disturbance", "VehicleConfig", "arc_step",

@@ -25,22 +25,18 @@ from topomap.errors import DatasetError
 from topomap.graph import TopoMap
 from topomap.groundtruth import PoseTable
 from topomap.localize import Localizer
-from topomap.motion import Command
+from topomap.motion import Command, wrap_angle
 from topomap.navigate import EventKind, NavEvent, Navigator, NavStatus
 from topomap.sim.conditions import Conditions
 from topomap.sim.simulator import Simulator
 from topomap.sim.world import World
 
 __all__ = ["SUCCESS_POSITION_M", "SUCCESS_HEADING_DEG", "EpisodeResult", "goal_pose", "run_episode",
-           "replay_episode", "read_commands", "wrap_angle"]
+           "replay_episode", "read_commands"]
 
 #: An episode succeeds when it ends within these of the goal node's pose.
 SUCCESS_POSITION_M = 0.25
 SUCCESS_HEADING_DEG = 10.0
-
-
-def wrap_angle(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 @dataclass

@@ -16,7 +16,7 @@ import numpy as np
 
 from topomap.camera import CameraIntrinsics
 
-__all__ = ["Pose", "wrap_angle", "camera_from_world", "project_world_points", "CAMERA_HEIGHT_M"]
+__all__ = ["Pose", "camera_from_world", "project_world_points", "CAMERA_HEIGHT_M"]
 
 #: Default height of the optical centre above the floor [m].
 CAMERA_HEIGHT_M = 0.8
@@ -28,11 +28,6 @@ class Pose(NamedTuple):
     x: float
     z: float
     theta: float
-
-
-def wrap_angle(a: float) -> float:
-    """Angle in ``(-pi, pi]`` [rad]."""
-    return math.atan2(math.sin(a), math.cos(a))
 
 
 def camera_from_world(pose: Pose | tuple[float, float, float], height_m: float = CAMERA_HEIGHT_M) -> tuple[np.ndarray, np.ndarray]:

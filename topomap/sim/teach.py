@@ -26,11 +26,11 @@ import numpy as np
 
 from topomap.camera import CameraIntrinsics
 from topomap.errors import ConfigError, DatasetError
-from topomap.motion import Command
-from topomap.sim.geometry import CAMERA_HEIGHT_M, wrap_angle
+from topomap.motion import Command, wrap_angle
+from topomap.sim.geometry import CAMERA_HEIGHT_M
 from topomap.sim.conditions import Conditions, parse_conditions
 from topomap.sim.simulator import Simulator, route_start
-from topomap.sim.world import Route, World
+from topomap.sim.world import WaypointRoute, World
 
 __all__ = ["TeachConfig", "TeachResult", "PurePursuit", "teach"]
 
@@ -171,7 +171,7 @@ class PurePursuit:
         return Command(float(v), v_h, float(omega))
 
 
-def _route_path(route: Route, overlap_m: float) -> np.ndarray:
+def _route_path(route: WaypointRoute, overlap_m: float) -> np.ndarray:
     p = route.points
     if not route.closed or overlap_m <= 0:
         return p

@@ -33,7 +33,7 @@ __all__ = [
     "Wall",
     "Rect",
     "Marker",
-    "Route",
+    "WaypointRoute",
     "World",
     "generate_world",
     "default_world",
@@ -117,7 +117,7 @@ class Marker:
 
 
 @dataclass(frozen=True)
-class Route:
+class WaypointRoute:
     """A named polyline of ``(x, z)`` waypoints [m]; ``closed`` routes end where they start."""
 
     name: str
@@ -153,7 +153,7 @@ class World:
 
     walls: tuple[Wall, ...]
     free: tuple[Rect, ...]
-    routes: tuple[Route, ...] = ()
+    routes: tuple[WaypointRoute, ...] = ()
     markers: tuple[Marker, ...] = ()
     wall_height_m: float = WALL_HEIGHT_M
     floor_texture: str = "proc:tiles:0"
@@ -191,7 +191,7 @@ class World:
     def route_names(self) -> list[str]:
         return [r.name for r in self.routes]
 
-    def route(self, name: str) -> Route:
+    def route(self, name: str) -> WaypointRoute:
         """The route called ``name``; an unknown name lists the valid ones."""
         for r in self.routes:
             if r.name == name:
@@ -248,7 +248,7 @@ class World:
                 walls=tuple(Wall(float(a), float(b), float(c), float(e), str(t)) for a, b, c, e, t in d["walls"]),
                 free=tuple(Rect(*(float(v) for v in f)) for f in d["free"]),
                 routes=tuple(
-                    Route(str(name), tuple((float(x), float(z)) for x, z in r["waypoints"]), bool(r.get("closed", False)))
+                    WaypointRoute(str(name), tuple((float(x), float(z)) for x, z in r["waypoints"]), bool(r.get("closed", False)))
                     for name, r in d.get("routes", {}).items()
                 ),
                 markers=tuple(
@@ -557,7 +557,7 @@ def generate_world(
     perim += [(i, nz_ - 1) for i in range(nx_ - 2, -1, -1)] + [(0, j) for j in range(nz_ - 2, 0, -1)]
     start = ((xs[0] + xs[1]) / 2, float(zs[0]))
     loop_pts = [start] + [pos[n] for n in perim[1:]] + [pos[perim[0]], start]
-    routes = [Route("loop", tuple(loop_pts), closed=True)]
+    routes = [WaypointRoute("loop", tuple(loop_pts), closed=True)]
     dist = dict(nx.all_pairs_dijkstra_path_length(g, weight=lambda a, b, _: _dist(pos[a], pos[b])))
     paths = dict(nx.all_pairs_dijkstra_path(g, weight=lambda a, b, _: _dist(pos[a], pos[b])))
     s_edge = ((0, 0), (1, 0))
@@ -572,7 +572,7 @@ def generate_world(
                 if best is None or cost < best[0] - 1e-9:
                     best = (cost, paths[a][b])
         pts = [start] + [pos[n] for n in best[1]] + [on_line, inside, centre]
-        routes.append(Route(f"room{r_i}", tuple(_dedupe(pts))))
+        routes.append(WaypointRoute(f"room{r_i}", tuple(_dedupe(pts))))
 
     return World(
         walls=tuple(walls),

@@ -1,4 +1,4 @@
-"""Disturbance observer (topomap.servo.observer): what the images make observable."""
+"""Disturbance observer (topomap.servo.disturbance): what the images make observable."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 from topomap.config import ObserverConfig
 from topomap.errors import ConfigError
 from topomap.motion import Command
-from topomap.servo.observer import DisturbanceObserver
+from topomap.servo.disturbance import DisturbanceObserver
 
 
 def run_heading(d_omega, omega_cmd, steps=100, dt=0.1, noise=0.002, seed=0, obs=None, theta0=0.3):

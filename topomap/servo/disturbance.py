@@ -27,13 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from topomap.config import ObserverConfig
-from topomap.motion import Command
+from topomap.motion import Command, wrap_angle
 
 __all__ = ["DisturbanceEstimate", "DisturbanceObserver"]
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 @dataclass(frozen=True)
@@ -97,7 +93,7 @@ class DisturbanceObserver:
         self._rejected = 0
         self._prior_only = False
         if theta_prior is not None and math.isfinite(theta_prior):
-            self._x[0] = _wrap(float(theta_prior))
+            self._x[0] = wrap_angle(float(theta_prior))
             self._has_theta = self._prior_only = True
 
     # ------------------------------------------------------------------ one step
@@ -115,7 +111,7 @@ class DisturbanceObserver:
         if self._prior_only and applied is not None and dt > 0:
             # a predicted heading: dead-reckoned, the covariances untouched (the first measurement
             # replaces it and then everything is as if there had been no prior)
-            self._x[0] = _wrap(self._x[0] + (applied.omega + self._x[1]) * dt)
+            self._x[0] = wrap_angle(self._x[0] + (applied.omega + self._x[1]) * dt)
         elif self._has_theta and applied is not None and dt > 0:
             F = np.array([[1.0, dt], [0.0, 1.0]])
             self._x = F @ self._x + np.array([applied.omega * dt, 0.0])
@@ -130,7 +126,7 @@ class DisturbanceObserver:
                 self._has_theta = True
                 self._rejected = 0
             else:
-                innov = _wrap(theta - self._x[0])
+                innov = wrap_angle(theta - self._x[0])
                 S = self._P[0, 0] + cfg.heading_noise_rad**2
                 if innov * innov > 25.0 * S and self._rejected < 3:
                     self._rejected += 1  # a wrong reconstruction; after 3 in a row, believe it
@@ -144,13 +140,13 @@ class DisturbanceObserver:
                         self._x = self._x + K * innov
                         self._P = self._P - np.outer(K, self._P[0, :])
                     self._rejected = 0
-            self._x[0] = _wrap(self._x[0])
+            self._x[0] = wrap_angle(self._x[0])
             self._x[1] = max(-cfg.d_omega_max, min(cfg.d_omega_max, self._x[1]))
         # forward parameters from the scaled displacement
         if position_s is not None and np.all(np.isfinite(position_s)) and theta is not None:
             pos = np.asarray(position_s, dtype=float)
             if self._last_pos is not None and applied is not None and dt > 0:
-                self._forward_update(pos - self._last_pos, 0.5 * (self._last_theta + theta) if abs(_wrap(theta - self._last_theta)) < 1.0 else theta, applied, dt)
+                self._forward_update(pos - self._last_pos, 0.5 * (self._last_theta + theta) if abs(wrap_angle(theta - self._last_theta)) < 1.0 else theta, applied, dt)
             self._last_pos, self._last_theta = pos, float(theta)
         else:
             self._last_pos, self._last_theta = None, None
