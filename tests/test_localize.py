@@ -420,3 +420,32 @@ def test_an_appended_experience_is_linked_and_answers_as_one_place(route, tmp_pa
     assert a.experience in (0, 1) and a.place == place[a.node]
     linked = [n for n in m.nodes if m.nodes[n].sequence == 1 and place[n] != n]
     assert linked and all(m.nodes[place[n]].sequence == 0 for n in linked)  # the shared place is the first experience's
+
+
+@pytest.mark.parametrize("calibration", [
+    {"version": 1, "single": {"features": ["margin"], "coef": ["nan"], "intercept": 0}, "reference": {}},
+    {"version": 1, "single": {"features": ["rm -rf"], "coef": [1.0], "intercept": 0}, "reference": {}},
+    {"version": 1, "single": "weights", "reference": {}},
+    {"version": 1, "single": {"features": ["margin"], "coef": [1.0], "intercept": 0}, "reference": {"snr": -1}},
+])
+def test_a_strangers_calibration_is_refused_with_one_line(route, calibration):
+    from topomap.errors import MapFormatError
+
+    bad = dataclasses.replace(route.map, meta={**route.map.meta, "calibration": calibration})
+    with pytest.raises(MapFormatError, match="refit it with `topomap index MAP`"):
+        Localizer(bad)
+
+
+def test_malformed_global_descriptors_are_refused(route):
+    from topomap.errors import MapFormatError
+
+    g = Localizer(route.map, LocalizeConfig(descriptor="hog")).global_descriptors
+    arrays = {"global_node_ids": g.node_ids, "global_matrix": np.full(g.matrix.shape, np.nan, np.float16)}
+    meta = {**route.map.meta, "global_descriptor": g.to_meta()}
+    with pytest.raises(MapFormatError, match="topomap index MAP"):
+        Localizer(dataclasses.replace(route.map, arrays=arrays, meta=meta))
+    stale = {"global_node_ids": g.node_ids[:-1], "global_matrix": g.matrix[:-1].astype(np.float16)}
+    with pytest.raises(MapFormatError):  # rows and ids disagree
+        Localizer(dataclasses.replace(route.map, arrays={**stale, "global_node_ids": g.node_ids}, meta=meta))
+    loc = Localizer(dataclasses.replace(route.map, arrays=stale, meta=meta))  # another node set: recomputed
+    assert len(loc.global_descriptors.node_ids) == len(route.map.nodes)

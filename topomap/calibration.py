@@ -97,7 +97,8 @@ class Calibrator:
             intercept = float(d["intercept"])
         except (KeyError, TypeError, ValueError):
             raise MapFormatError("the map's calibration is malformed; refit it with `topomap index MAP`") from None
-        if len(feats) != len(coef) or not all(math.isfinite(c) for c in (*coef, intercept)):
+        if (len(feats) != len(coef) or len(feats) > 64 or not all(math.isfinite(c) for c in (*coef, intercept))
+                or not set(feats) <= set(FEATURE_SIGNS)):
             raise MapFormatError("the map's calibration is malformed; refit it with `topomap index MAP`")
         return cls(feats, coef, intercept)
 

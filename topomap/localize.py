@@ -436,7 +436,7 @@ class Localizer:
         if cal is None:
             return None
         fitted = cal.fitted_for
-        if fitted.get("descriptor") != self.mode or int(fitted.get("nodes", -1)) != len(self.node_ids):
+        if fitted.get("descriptor") != self.mode or fitted.get("nodes") != len(self.node_ids):
             log.warning("the map's calibration was fitted for another map or descriptor; confidences are raw "
                         "(refit with `topomap index MAP`)")
             return None

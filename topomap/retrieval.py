@@ -594,6 +594,9 @@ class GlobalDescriptors:
         ids = np.asarray(arrays["global_node_ids"], np.int64).ravel()
         matrix = np.asarray(arrays["global_matrix"])  # float16 as stored: half the memory; rows cast when compared
         size = meta.get("size")
-        if matrix.ndim != 2 or len(matrix) != len(ids) or not (isinstance(size, list) and len(size) == 2):
+        ok = (matrix.ndim == 2 and len(matrix) == len(ids) and isinstance(size, list) and len(size) == 2
+              and all(isinstance(v, int) and 2 * HOG_CELL <= v <= 64 * HOG_CELL for v in size)
+              and matrix.dtype.kind == "f" and bool(np.isfinite(matrix).all()))
+        if not ok:
             raise MapFormatError("the map's global descriptors are malformed; rebuild them with `topomap index MAP`")
         return cls("hog", (int(size[0]), int(size[1])), ids, matrix)
