@@ -132,7 +132,7 @@ def test_localizer_is_reusable_and_state_free(route):
     assert other.node != first.node
     assert (again.node, again.confidence, again.inliers, again.candidates) == (
         first.node, first.confidence, first.inliers, first.candidates)
-    assert [r.node for r in route.loc.localize_all([a, b])] == [first.node, other.node]
+    assert [route.loc.localize(x).node for x in (a, b)] == [first.node, other.node]
 
 
 def test_features_of_hook_and_shortlist_size(route):

@@ -421,8 +421,7 @@ class Localizer:
             return self.calibration.single.probability(ev), True, ev
 
         loc = self.answer(p, score, checks, score, confidence)
-        verified = loc.verification is not None and loc.verification.inliers >= self.map.config.match.min_inliers
-        if loc.localized and not verified:
+        if loc.localized and not (loc.verification is not None and loc.verification.verified):
             # never confidently wrong: one frame whose answer did not verify geometrically is not a
             # place recognised, however probable its appearance makes it (measured: a calibrated
             # appearance-only answer declared a corridor frame to be in the Nordland map at 0.97);
@@ -441,10 +440,6 @@ class Localizer:
                         "(refit with `topomap index MAP`)")
             return None
         return cal
-
-    def localize_all(self, images: Iterable[np.ndarray]) -> Iterator[Localization]:
-        for img in images:
-            yield self.localize(img)
 
 
 class SequenceLocalizer:
@@ -551,7 +546,7 @@ class SequenceLocalizer:
             ratio = float(np.clip(prior.sum(axis=1) @ lik / max(lik.mean(), 1e-300), 1.0 / cfg.max_frame_ratio,
                                   cfg.max_frame_ratio))
         elif len(q.features) >= MIN_FEATURES_FOR_BOW and best in checks:
-            ok = checks[best].inliers >= loc.map.config.match.min_inliers
+            ok = checks[best].verified
             r_in, r_out = cfg.verified_in_map, cfg.verified_elsewhere
             ratio = r_in / r_out if ok else (1.0 - r_in) / (1.0 - r_out)
         if self._tells_elsewhere and ratio is not None:
