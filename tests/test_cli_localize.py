@@ -108,7 +108,8 @@ def test_localize_thumbnail_descriptor_and_threshold(runner, cli_app, data):
 
 # ============================================================================= eval
 EVAL_KEYS = {"queries", "queries_with_match", "recall_at_1", "recall_at_5", "recall_at_10", "auc",
-             "recall_at_100_precision", "mode", "descriptor", "ms_per_query", "skipped"}
+             "recall_at_100_precision", "mode", "descriptor", "ms_per_query", "skipped", "declared", "declared_right",
+             "declared_precision", "ece", "calibrated"}
 
 
 def test_eval_with_a_correspondence_csv_and_plot(runner, cli_app, data, tmp_path):

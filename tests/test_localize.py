@@ -14,7 +14,7 @@ from conftest import dataset
 from map_synth import FRAME_SIZE, scene, window, write_sequence
 
 from topomap.build import build_map
-from topomap.config import BuildConfig, FeatureConfig, LocalizeConfig
+from topomap.config import BuildConfig, CalibrationConfig, FeatureConfig, LocalizeConfig
 from topomap.errors import ConfigError, IndexMissingError
 from topomap.evaluate import evaluate
 from topomap.groundtruth import read_correspondences
@@ -407,7 +407,8 @@ def test_an_appended_experience_is_linked_and_answers_as_one_place(route, tmp_pa
     dusk = PHOTOMETRIC_PRESETS["dusk"]
     write_sequence(tmp_path / "dusk", [apply_photometric(route.second_pass(i), dusk, np.random.default_rng(i))
                                        for i in range(len(XS))])
-    m = build_map(tmp_path / "dusk", base=dataclasses.replace(route.map, nodes=dict(route.map.nodes),
+    quick = dataclasses.replace(route.map.config, calibration=CalibrationConfig(enabled=False))  # not what is tested
+    m = build_map(tmp_path / "dusk", base=dataclasses.replace(route.map, config=quick, nodes=dict(route.map.nodes),
                                                             edges=dict(route.map.edges), frames=list(route.map.frames),
                                                             sequences=list(route.map.sequences), meta=dict(route.map.meta),
                                                             arrays=dict(route.map.arrays)))
@@ -449,3 +450,35 @@ def test_malformed_global_descriptors_are_refused(route):
         Localizer(dataclasses.replace(route.map, arrays={**stale, "global_node_ids": g.node_ids}, meta=meta))
     loc = Localizer(dataclasses.replace(route.map, arrays=stale, meta=meta))  # another node set: recomputed
     assert len(loc.global_descriptors.node_ids) == len(route.map.nodes)
+
+
+# ============================================================================= calibration
+def test_self_supervised_calibration_makes_confidence_a_probability(route, second_pass):
+    """calibrate_map fits on the map's own keyframes; the localizer then reports calibrated
+    probabilities that rank right answers above wrong ones, and the map refuses nothing."""
+    from topomap.self_supervision import calibrate_map
+
+    m = dataclasses.replace(route.map, meta=dict(route.map.meta))
+    cal = calibrate_map(m, queries=20)
+    assert m.meta["calibration"]["fitted_for"]["nodes"] == len(m.nodes) and cal.fitted_for["samples"] >= 60
+    assert 0 < cal.fitted_for["right"] < cal.fitted_for["samples"]
+    loc = Localizer(m)
+    res = [loc.localize_query(q) for q in second_pass]
+    assert all(r.calibrated and 0.0 <= r.confidence <= 1.0 for r in res)
+    right = [r.confidence for i, r in enumerate(res) if route.right(i, r.node)]
+    assert right and np.mean(right) > 0.5
+    # a scene that is not in the map gets a low probability
+    foreign = loc.localize(window(scene(12), 300.0, y=40.0))
+    assert foreign.calibrated and foreign.confidence < 0.5 and not foreign.localized
+    # another descriptor than the one it was fitted for: raw confidences
+    assert Localizer(m, LocalizeConfig(descriptor="bow")).calibration is None
+
+
+def test_a_map_without_images_cannot_be_calibrated(route):
+    from topomap.errors import CalibrationError
+    from topomap.self_supervision import calibrate_map
+
+    bare = dataclasses.replace(route.map, meta=dict(route.map.meta), nodes={
+        n: dataclasses.replace(v, image=None, image_data=None) for n, v in route.map.nodes.items()})
+    with pytest.raises(CalibrationError, match="--no-images"):
+        calibrate_map(bare)

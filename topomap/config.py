@@ -127,11 +127,11 @@ IMAGE_FORMATS = {"jpeg": "lossy, quality BuildConfig.image_quality", "png": "los
 class CalibrationConfig:
     """Self-supervised calibration of localization confidence at build / index time
     (:mod:`topomap.self_supervision`): ``queries`` keyframes give four samples each; maps with fewer
-    than ``min_nodes`` nodes are left uncalibrated (too few samples to fit on)."""
+    than ``min_nodes`` nodes are left uncalibrated (under ~200 samples fit the seven weights poorly)."""
 
     enabled: bool = True
     queries: int = 60
-    min_nodes: int = 30
+    min_nodes: int = 50
 
     def __post_init__(self) -> None:
         if self.queries < 10 or self.min_nodes < 10:
