@@ -555,7 +555,8 @@ def hog_descriptor(image: np.ndarray, size: tuple[int, int] | None = None) -> np
 @dataclass(frozen=True)
 class GlobalDescriptors:
     """Whole-image descriptors of a map's nodes: ``node_ids`` (N,) int64 and ``matrix`` (N, D) float32
-    or, loaded from a map file, float16 (rows unit L2) of ``kind`` ``"hog"`` at ``size = (w, h)``."""
+    (rows unit L2; D = 1260 for 4:3 images, 5 KB a node in memory, 2.5 KB in the file as float16) of
+    ``kind`` ``"hog"`` at ``size = (w, h)``."""
 
     kind: str
     size: tuple[int, int]
@@ -576,7 +577,7 @@ class GlobalDescriptors:
     def similarity(self, query: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """Cosine similarity of a query descriptor to every node (or to ``rows``), (N,) float32."""
         m = self.matrix if rows is None else self.matrix[rows]
-        return m.astype(np.float32, copy=False) @ np.asarray(query, np.float32)
+        return m @ np.asarray(query, np.float32)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         return {"global_node_ids": self.node_ids, "global_matrix": self.matrix.astype(np.float16)}
@@ -592,11 +593,13 @@ class GlobalDescriptors:
         if meta.get("kind") != "hog" or meta.get("cell") != HOG_CELL or meta.get("bins") != HOG_BINS:
             return None
         ids = np.asarray(arrays["global_node_ids"], np.int64).ravel()
-        matrix = np.asarray(arrays["global_matrix"])  # float16 as stored: half the memory; rows cast when compared
+        matrix = np.asarray(arrays["global_matrix"])
         size = meta.get("size")
         ok = (matrix.ndim == 2 and len(matrix) == len(ids) and isinstance(size, list) and len(size) == 2
               and all(isinstance(v, int) and 2 * HOG_CELL <= v <= 64 * HOG_CELL for v in size)
               and matrix.dtype.kind == "f" and bool(np.isfinite(matrix).all()))
         if not ok:
             raise MapFormatError("the map's global descriptors are malformed; rebuild them with `topomap index MAP`")
-        return cls("hog", (int(size[0]), int(size[1])), ids, matrix)
+        # float16 in the file, float32 in memory: numpy casts float16 at ~3 ns an element, which at
+        # 2000 candidates would cost more than the comparison itself
+        return cls("hog", (int(size[0]), int(size[1])), ids, matrix.astype(np.float32))
