@@ -202,13 +202,16 @@ def run_one(job: dict) -> dict:
 
 def _budget(events: list[dict], per_hop: float) -> float:
     """The navigator's time budget at the end, from its events: ``time_budget_base_s`` + per_hop per hop of the first
-    route, extended at each re-plan to the new route's (as :mod:`topomap.navigate` does)."""
-    budget, base = 0.0, NavigateConfig().time_budget_base_s
+    route, extended at each of the first ``max_replans`` re-plans to the new route's (as :mod:`topomap.navigate` does)."""
+    cfg = NavigateConfig()
+    budget, base, replans = 0.0, cfg.time_budget_base_s, 0
     for e in events:
         if e["kind"] == "planned":
             budget = base + per_hop * max(1, e["hops"] or 0)
         elif e["kind"] == "replanned":
-            budget = max(budget, e["t"] + base + per_hop * max(1, e["hops"] or 0))
+            replans += 1
+            if replans <= cfg.max_replans:
+                budget = max(budget, e["t"] + base + per_hop * max(1, e["hops"] or 0))
     return budget
 
 
