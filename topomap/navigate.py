@@ -216,14 +216,15 @@ class _Settle:
 @dataclass
 class _Leg:
     """The state of following one route (reset at every re-plan): ``nodes[i]`` is the subgoal,
-    ``lost`` the periods in a row without usable geometry, ``since_switch_s`` when the subgoal became
-    the target."""
+    ``lost`` the periods in a row without usable geometry (not counting up to a half turn toward a
+    subgoal outside the view: ``turning``), ``since_switch_s`` when the subgoal became the target."""
 
     nodes: list[int]
     settle: _Settle
     since_switch_s: float
     i: int = 0
     lost: int = 0
+    turning: int = 0  # blind periods spent turning toward a subgoal outside the view
 
 
 class Navigator:
@@ -263,6 +264,9 @@ class Navigator:
         self.agreement = GoalAgreement(tmap, self.config.arrive_image_error, self.config.arrive_descriptor_fraction)
         # the robot's images are processed at the map's working resolution
         self.camera = robot.camera.fitted_to(*tmap.working_size)
+        self._half_fov_rad = math.atan2(0.5 * self.camera.width, self.camera.fx)
+        # the periods a blind half turn takes at the servo's turn rate
+        self._turn_steps = math.ceil(math.pi / self.servo.config.max_turn_rps / self.config.control_period_s)
         self.outcome = NavOutcome()
         self._time = 0.0
         self._last_command: Command | None = None
@@ -426,13 +430,17 @@ class Navigator:
                     leg.i += 1
                     out.subgoals_reached += 1
                     leg.since_switch_s = self._time
-                    leg.lost = 0
+                    leg.lost = leg.turning = 0
                     self._target(nodes, leg.i, prior if prior is not None and math.isfinite(prior) else None)
                     yield NavEvent(EventKind.SUBGOAL, self._time, f"reached {sub} ({reason}); next {nodes[leg.i]}",
                                    subgoal=nodes[leg.i], route=tuple(nodes))
                     continue
             # -- lost or stuck: re-localize and re-plan
-            leg.lost = leg.lost + 1 if s.status is ServoStatus.LOST else 0
+            if self._turning_toward(s) and leg.turning < self._turn_steps:
+                leg.turning += 1  # a subgoal a turn away is not lost while the turn lasts
+            else:
+                leg.lost = leg.lost + 1 if s.status is ServoStatus.LOST else 0
+                leg.turning = leg.turning if s.status is ServoStatus.LOST else 0
             stuck = self._time - leg.since_switch_s > cfg.subgoal_timeout_s and not final
             fooled = leg.settle.false_arrival >= cfg.lost_after_steps
             if leg.lost >= cfg.lost_after_steps or stuck or fooled:
@@ -563,6 +571,13 @@ class Navigator:
         if "re-localizations" in t:
             parts.append(f"re-localized {t['re-localizations']:.0f} times ({t.get('far re-localizations', 0):.0f} far)")
         return ", ".join(parts) or "nothing"
+
+    def _turning_toward(self, s: ServoOutput) -> bool:
+        """Blind, and the dead-reckoned heading to the subgoal still puts it outside the camera's
+        view: the servo is turning toward it (at a corner taught as a turn in place the next
+        keyframe lies a turn away; docs/theory.md section 4.4 keeps it in the field of view)."""
+        theta = s.disturbance.theta
+        return s.status is ServoStatus.LOST and math.isfinite(theta) and abs(theta) > self._half_fov_rad
 
     def _keyframe_heading(self, a: int, b: int) -> float:
         """Heading of keyframe ``a`` relative to keyframe ``b`` from their images [rad]; NaN when
