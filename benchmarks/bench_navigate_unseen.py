@@ -22,8 +22,8 @@ Prints success with its 95 % Wilson interval, median / p90 final error, per vehi
 failures counted by kind, derived from the navigator's events and outcome: ``wrong start
 localization`` (the first localization was more than 1.5 m or 60 deg from the true start; the
 ground truth only scores), ``no localization``, ``gave up (lost)`` / ``gave up (fooled)`` /
-``gave up (stuck)`` (re-plans exhausted after losing sight of a subgoal / a look-alike at the goal
-/ a subgoal not reached in time), ``timeout``, ``false arrival`` (the navigator said arrived,
+``gave up (stuck)`` (recovery given up; the last loss: a subgoal out of sight / a look-alike at the goal / a
+subgoal not reached in time), ``timeout``, ``false arrival`` (the navigator said arrived,
 more than 0.25 m or 10 deg off). For a give-up it also reports how much of the time budget was left.
 
 Run: ``python benchmarks/bench_navigate_unseen.py [--episodes 100] [--worlds 100-109] [--jobs 2]
