@@ -243,7 +243,7 @@ def test_settle_needs_the_image_to_agree():
     assert fooled.false_arrival == 3 and fooled.converged_streak == 0
 
 
-def _blind_navigation(**config):
+def _blind_navigator(**config):
     """A five-node map and a robot whose camera sees a blank wall: every subgoal is lost at once."""
     import numpy as np
 
@@ -272,7 +272,11 @@ def _blind_navigation(**config):
             self.commands.append(command)
 
     robot = Blind()
-    nav = Navigator(m, robot, config=NavigateConfig(**config))
+    return Navigator(m, robot, config=NavigateConfig(**config)), robot
+
+
+def _blind_navigation(**config):
+    nav, robot = _blind_navigator(**config)
     events = list(nav.run(4, start_node=0))
     return nav, robot, events
 
@@ -303,3 +307,23 @@ def test_no_time_left_is_a_timeout_not_a_give_up():
     """With no quarter of the budget to keep, the run ends when the budget is spent."""
     nav, _, _ = _blind_navigation(max_replans=0, give_up_budget_fraction=0.0)
     assert nav.outcome.status is NavStatus.TIMEOUT and "exhausted" in nav.outcome.message
+
+
+def test_a_subgoal_a_turn_away_is_not_lost_while_turning_toward_it():
+    """Blind with the dead-reckoned heading outside the half field of view: turning, not lost."""
+    import types
+
+    from topomap.servo.servo import ServoStatus
+
+    nav, _ = _blind_navigator()
+    half = nav._half_fov_rad
+    assert 0.3 < half < 1.2 and nav._turn_steps * nav.config.control_period_s * nav.servo.config.max_turn_rps >= math.pi
+
+    def out(status, theta):
+        return types.SimpleNamespace(status=status, disturbance=types.SimpleNamespace(theta=theta))
+
+    assert nav._turning_toward(out(ServoStatus.LOST, 1.5 * half))
+    assert nav._turning_toward(out(ServoStatus.LOST, -1.5 * half))
+    assert not nav._turning_toward(out(ServoStatus.LOST, 0.5 * half))  # it should be in view: lost
+    assert not nav._turning_toward(out(ServoStatus.LOST, math.nan))  # no heading to turn to
+    assert not nav._turning_toward(out(ServoStatus.APPROACHING, 1.5 * half))
