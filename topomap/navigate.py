@@ -512,18 +512,22 @@ class Navigator:
         good one; take a far answer only confident and confirmed by a second look; after a full
         turn with neither, keep the last good node (or the last localization)."""
         cfg, min_inliers = self.config, self.map.config.match.min_inliers
-        near = sorted(self._near(self._last_good))
+        near = self._near(self._last_good)
+        # the localizer's ranking among the near nodes only (appearance and inliers: the node with
+        # the most inliers may be one looking down the same corridor from metres away)
+        away = [n for n in self.map.nodes if n not in near]
         turned, far, found = 0.0, None, None
         best_local: tuple[int, int] | None = None  # (inliers, node) of the best weakly verified near node
         while found is None:
             _, q = self._look(localizing=True)
-            checks = [(self._match(q, n).inliers, n) for n in near]
-            inliers, node = max(checks) if checks else (0, None)
-            if node is not None and inliers >= cfg.switch_min_inliers:
-                found = (node, f"verified near node {self._last_good} ({inliers} inliers)")
-                break
-            if node is not None and inliers >= min_inliers and (best_local is None or inliers > best_local[0]):
-                best_local = (inliers, node)
+            if near:
+                local = self.localizer.localize_query(q, exclude=away)
+                inliers = local.verification.inliers if local.verification is not None else 0
+                if inliers >= cfg.switch_min_inliers:
+                    found = (local.node, f"verified near node {self._last_good} ({inliers} inliers)")
+                    break
+                if inliers >= min_inliers and (best_local is None or inliers > best_local[0]):
+                    best_local = (inliers, local.node)
             loc = self.localizer.localize_query(q)
             if loc.localized and loc.node in near:
                 found = (loc.node, f"confidence {loc.confidence:.2f}")
