@@ -22,8 +22,8 @@ Prints success with its 95 % Wilson interval, median / p90 final error, per vehi
 failures counted by kind, derived from the navigator's events and outcome: ``wrong start
 localization`` (the first localization was more than 1.5 m or 60 deg from the true start; the
 ground truth only scores), ``no localization``, ``gave up (lost)`` / ``gave up (fooled)`` /
-``gave up (stuck)`` (re-plans exhausted after losing sight of a subgoal / a look-alike at the goal
-/ a subgoal not reached in time), ``timeout``, ``false arrival`` (the navigator said arrived,
+``gave up (stuck)`` (recovery given up; the last loss: a subgoal out of sight / a look-alike at the goal / a
+subgoal not reached in time), ``timeout``, ``false arrival`` (the navigator said arrived,
 more than 0.25 m or 10 deg off). For a give-up it also reports how much of the time budget was left.
 
 Run: ``python benchmarks/bench_navigate_unseen.py [--episodes 100] [--worlds 100-109] [--jobs 2]
@@ -202,13 +202,16 @@ def run_one(job: dict) -> dict:
 
 def _budget(events: list[dict], per_hop: float) -> float:
     """The navigator's time budget at the end, from its events: ``time_budget_base_s`` + per_hop per hop of the first
-    route, extended at each re-plan to the new route's (as :mod:`topomap.navigate` does)."""
-    budget, base = 0.0, NavigateConfig().time_budget_base_s
+    route, extended at each of the first ``max_replans`` re-plans to the new route's (as :mod:`topomap.navigate` does)."""
+    cfg = NavigateConfig()
+    budget, base, replans = 0.0, cfg.time_budget_base_s, 0
     for e in events:
         if e["kind"] == "planned":
             budget = base + per_hop * max(1, e["hops"] or 0)
         elif e["kind"] == "replanned":
-            budget = max(budget, e["t"] + base + per_hop * max(1, e["hops"] or 0))
+            replans += 1
+            if replans <= cfg.max_replans:
+                budget = max(budget, e["t"] + base + per_hop * max(1, e["hops"] or 0))
     return budget
 
 
@@ -421,7 +424,7 @@ def main(argv: list[str] | None = None) -> int:
                 f.write(json.dumps(row) + "\n")
                 f.flush()
                 print(f"world {row['world']} ep {row['episode']:>2} {row['vehicle']:<8} {row['method']:<13} "
-                      f"{row['start_node']:>3} -> {row['goal']:<3} {row['status']:<8} "
+                      f"{row['start_node'] if row['start_node'] is not None else '?':>3} -> {row['goal']:<3} {row['status']:<8} "
                       f"{'ok  ' if row['success'] else 'FAIL'} {row['final_position_error_m']:.3f} m "
                       f"{row['final_heading_error_deg']:5.1f} deg  {row['wall_s']:.0f} s  {row['kind'] or ''}", flush=True)
     wall = time.perf_counter() - t0

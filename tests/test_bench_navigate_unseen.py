@@ -33,6 +33,9 @@ def test_failure_kinds_from_outcome_and_events(bench):
     assert k(_row(message="gave up after 8 re-plans (lost sight of subgoal 86)"))[0] == "gave up (lost)"
     assert k(_row(message="gave up after 8 re-plans (was fooled by a look-alike of subgoal 3)"))[0] == "gave up (fooled)"
     assert k(_row(message="gave up after 8 re-plans (could not reach subgoal 9)"))[0] == "gave up (stuck)"
+    tried = "; tried: backed off 12 s toward nodes that verified well, turned 720 deg in place searching, re-localized 9 times (1 far); 80 s of 340 s left)"
+    for why, kind in (("lost sight of", "lost"), ("was fooled by a look-alike of", "fooled"), ("could not reach", "stuck")):
+        assert k(_row(message=f"gave up after 9 re-plans ({why} subgoal 9{tried}"))[0] == f"gave up ({kind})"
     wrong = _row(message="gave up after 8 re-plans (lost sight of subgoal 86)", start_localization_error_m=11.0)
     assert k(wrong) == ("wrong start localization", "gave up (lost)")
     turned = _row(status="timeout", start_localization_error_m=0.3, start_localization_error_deg=170.0)
@@ -46,6 +49,10 @@ def test_budget_follows_the_navigators_rule(bench):
               {"kind": "replanned", "t": 120.0, "hops": 2}]
     assert bench._budget(events, 10.0) == pytest.approx(110.0 + 60.0 + 300.0)
     assert bench._budget(events[:2], 10.0) == pytest.approx(260.0)
+    # only the first max_replans re-plans extend the budget
+    many = events[:2] + [{"kind": "replanned", "t": 100.0 * k, "hops": 20} for k in range(1, 20)]
+    n = bench.NavigateConfig().max_replans
+    assert bench._budget(many, 10.0) == pytest.approx(100.0 * n + 60.0 + 200.0)
 
 
 def test_wilson_interval_and_world_ranges(bench):

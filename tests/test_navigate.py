@@ -241,3 +241,89 @@ def test_settle_needs_the_image_to_agree():
     for k in range(3):
         assert fooled.update(k * 0.1, out, False, lambda: False) is None
     assert fooled.false_arrival == 3 and fooled.converged_streak == 0
+
+
+def _blind_navigator(**config):
+    """A five-node map and a robot whose camera sees a blank wall: every subgoal is lost at once."""
+    import numpy as np
+
+    from topomap.camera import CameraIntrinsics
+    from topomap.config import BuildConfig, NavigateConfig
+    from topomap.features import Features
+    from topomap.graph import Edge, EdgeKind, Node, TopoMap
+
+    size = (160, 120)
+    m = TopoMap(camera=CameraIntrinsics.default(*size), config=BuildConfig())
+    for i in range(5):
+        m.add_node(Node(i, 0, i, f"k{i:03d}.png", Features.empty("orb", size), np.zeros((6, 8), np.uint8)))
+    for a in range(4):
+        m.add_edge(Edge(a, a + 1, EdgeKind.SEQUENTIAL, 300, 0.6, 10.0))
+
+    class Blind:
+        camera = CameraIntrinsics.default(*size)
+
+        def __init__(self):
+            self.commands = []
+
+        def render(self):
+            return np.full((size[1], size[0]), 128, np.uint8)
+
+        def apply(self, command, dt):
+            self.commands.append(command)
+
+    robot = Blind()
+    return Navigator(m, robot, config=NavigateConfig(**config)), robot
+
+
+def _blind_navigation(**config):
+    nav, robot = _blind_navigator(**config)
+    events = list(nav.run(4, start_node=0))
+    return nav, robot, events
+
+
+def test_recovery_spends_the_time_budget_before_giving_up():
+    """The first re-plans fail (nothing is ever seen again) but time remains: the navigator keeps
+    backing off, searching and re-planning past max_replans, and gives up only with at most a
+    quarter of its budget left, saying what it lost and what it tried."""
+    nav, robot, events = _blind_navigation(max_replans=2)
+    out, cfg = nav.outcome, nav.config
+    assert out.status is NavStatus.FAILED and out.replans > cfg.max_replans + 1
+    budget = cfg.time_budget_base_s + cfg.time_budget_s_per_hop * 4  # at least the first route's
+    assert out.duration_s >= (1 - cfg.give_up_budget_fraction) * budget
+    msg = out.message
+    assert msg.startswith("gave up") and "lost sight of subgoal" in msg
+    assert "tried: " in msg and "turned" in msg and "re-localized" in msg and "s left" in msg
+    left = float(msg.split(" s of ")[0].split("; ")[-1])
+    total = float(msg.split(" s of ")[1].split(" s left")[0])
+    assert left <= cfg.give_up_budget_fraction * total + 1.0
+    # it moved between looks: turned in place searching, never stood still for whole re-plans
+    assert sum(abs(c.omega) > 0.1 for c in robot.commands) > 0.5 * len(robot.commands)
+    replans = [e for e in events if e.kind is EventKind.REPLANNED]
+    assert len(replans) == out.replans - 1
+    assert [e.kind for e in events].count(EventKind.LOCALIZED) == len(replans)
+
+
+def test_no_time_left_is_a_timeout_not_a_give_up():
+    """With no quarter of the budget to keep, the run ends when the budget is spent."""
+    nav, _, _ = _blind_navigation(max_replans=0, give_up_budget_fraction=0.0)
+    assert nav.outcome.status is NavStatus.TIMEOUT and "exhausted" in nav.outcome.message
+
+
+def test_a_subgoal_a_turn_away_is_not_lost_while_turning_toward_it():
+    """Blind with the dead-reckoned heading outside the half field of view: turning, not lost."""
+    import types
+
+    from topomap.servo.servo import ServoStatus
+
+    nav, _ = _blind_navigator()
+    half = nav._half_fov_rad
+    assert 0.3 < half < 1.2 and nav._turn_steps * nav.config.control_period_s * nav.servo.config.max_turn_rps >= math.pi
+
+    def out(status, theta):
+        return types.SimpleNamespace(status=status, disturbance=types.SimpleNamespace(theta=theta))
+
+    assert nav._turning_toward(out(ServoStatus.LOST, 1.5 * half))
+    assert nav._turning_toward(out(ServoStatus.LOST, -1.5 * half))
+    assert not nav._turning_toward(out(ServoStatus.LOST, 0.5 * half))  # it should be in view: lost
+    assert not nav._turning_toward(out(ServoStatus.LOST, math.nan))  # no heading to turn to
+    assert not nav._turning_toward(out(ServoStatus.APPROACHING, 1.5 * half))

@@ -30,9 +30,23 @@ the two keyframes' relative heading (their images' planar geometry, stored on th
 see the new subgoal yet — at a corner the next keyframe may lie a turn away — turns toward it
 instead of holding still (:meth:`~topomap.servo.servo.AppearanceServo.reacquire_command`).
 
-Recovery. After ``lost_after_steps`` periods without usable geometry, or when a subgoal is not
-reached within ``subgoal_timeout_s``, the navigator stops, penalises the edge it was following,
-re-localizes globally (turning in place to scan if needed) and re-plans.
+Recovery (docs/theory.md section 4.4). After ``lost_after_steps`` periods without usable geometry,
+when a subgoal is not reached within ``subgoal_timeout_s`` or a look-alike fooled the goal's settle
+test, the navigator stops and
+
+1. backs off toward the last node that verified well (at least ``switch_min_inliers`` inliers): it
+   drives the inverse of the commands sent since then (at most ``recover_backoff_s``, disturbance
+   compensation kept) until that node verifies again — it moves before it looks again;
+2. re-localizes, turning in place to search: a node within ``recover_local_hops`` of that node that
+   verifies is preferred; an answer farther away is taken only at ``recover_far_confidence`` (when
+   calibrated) and confirmed by a second look (a single frame of a look-alike place is not
+   enough); after a full turn without either, it keeps the last node that verified well (after a
+   look-alike fooled the goal's settle test there is none: it re-localizes globally);
+3. penalises the edge it was following and re-plans.
+
+It does not give up while more than ``give_up_budget_fraction`` of the time budget is left and the
+map offers a route: the first ``max_replans`` re-plans extend the budget to the new route's, later
+ones do not. A final failure says why (what it lost, what it tried, the time left).
 """
 
 from __future__ import annotations
@@ -40,10 +54,12 @@ from __future__ import annotations
 import enum
 import logging
 import math
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Protocol
 
+import networkx as nx
 import numpy as np
 
 from topomap.agreement import GoalAgreement
@@ -67,6 +83,8 @@ log = logging.getLogger(__name__)
 WAYPOINT_UNDOCK_FACTOR = 1.7
 #: The settle window counts only when at least this fraction of its steps has a pose estimate.
 SETTLE_MIN_VALID_FRACTION = 0.8
+#: While backing off, look for the node that verified well every this many periods.
+BACKOFF_CHECK_EVERY = 3
 
 
 class RobotLike(Protocol):
@@ -198,14 +216,15 @@ class _Settle:
 @dataclass
 class _Leg:
     """The state of following one route (reset at every re-plan): ``nodes[i]`` is the subgoal,
-    ``lost`` the periods in a row without usable geometry, ``since_switch_s`` when the subgoal became
-    the target."""
+    ``lost`` the periods in a row without usable geometry (not counting up to a half turn toward a
+    subgoal outside the view: ``turning``), ``since_switch_s`` when the subgoal became the target."""
 
     nodes: list[int]
     settle: _Settle
     since_switch_s: float
     i: int = 0
     lost: int = 0
+    turning: int = 0  # blind periods spent turning toward a subgoal outside the view
 
 
 class Navigator:
@@ -245,12 +264,19 @@ class Navigator:
         self.agreement = GoalAgreement(tmap, self.config.arrive_image_error, self.config.arrive_descriptor_fraction)
         # the robot's images are processed at the map's working resolution
         self.camera = robot.camera.fitted_to(*tmap.working_size)
+        self._half_fov_rad = math.atan2(0.5 * self.camera.width, self.camera.fx)
+        # the periods a blind half turn takes at the servo's turn rate
+        self._turn_steps = math.ceil(math.pi / self.servo.config.max_turn_rps / self.config.control_period_s)
         self.outcome = NavOutcome()
         self._time = 0.0
         self._last_command: Command | None = None
         self._estimate = None  # the servo's latest disturbance estimate
         self._here: int | None = None  # the node the robot was last localized at
         self._approach_side: float | None = None  # side of the subgoal camera the robot comes from
+        self._last_good: int | None = None  # the last node that verified well
+        # commands sent since the last good verification (what backing off inverts)
+        self._trail: deque[Command] = deque(maxlen=max(1, int(round(self.config.recover_backoff_s / self.config.control_period_s))))
+        self._tried: dict[str, float] = {}  # what recovery did, for the final message
         height = self.config.camera_height_m
         self._camera_height_m = height if height is not None else getattr(robot, "camera_height_m", None)
 
@@ -260,8 +286,10 @@ class Navigator:
         # the vocabulary words only serve global localization, not the servo's matching each period
         return image, self.localizer.prepare(image, words=localizing)
 
-    def _move(self, command: Command) -> None:
+    def _move(self, command: Command, trail: bool = False) -> None:
         dt = self.config.control_period_s
+        if trail:
+            self._trail.append(command)
         self.robot.apply(command, dt)
         self._time += dt
         self._last_command = command
@@ -317,12 +345,15 @@ class Navigator:
         if start_node is not None:
             self.map.node(start_node)
         out = self.outcome = NavOutcome(goal=int(goal))
+        self._trail.clear()
+        self._tried = {}
         try:
             if start_node is None:
                 yield from self._localize()
             else:
                 self._here = int(start_node)
             out.start_node = self._here
+            self._last_good = self._here
             route = self._plan(self._here, goal)
             out.route = tuple(route.nodes)
             yield NavEvent(EventKind.PLANNED, self._time, f"route of {route.hops} hops: {list(route.nodes)}",
@@ -371,6 +402,9 @@ class Navigator:
             yield NavEvent(EventKind.STEP, self._time, s.status.value, subgoal=sub, route=tuple(nodes), servo=s,
                            command=s.command, image=image, matches=(cur_px, goal_px))
             self._estimate = s.disturbance
+            if v.inliers >= cfg.switch_min_inliers and s.status is not ServoStatus.LOST:
+                self._last_good = sub
+                self._trail.clear()
             out.final_estimate_m = s.position_error_m
             out.final_heading_estimate_deg = math.degrees(s.heading_error_rad) if math.isfinite(s.heading_error_rad) else math.nan
 
@@ -396,13 +430,17 @@ class Navigator:
                     leg.i += 1
                     out.subgoals_reached += 1
                     leg.since_switch_s = self._time
-                    leg.lost = 0
+                    leg.lost = leg.turning = 0
                     self._target(nodes, leg.i, prior if prior is not None and math.isfinite(prior) else None)
                     yield NavEvent(EventKind.SUBGOAL, self._time, f"reached {sub} ({reason}); next {nodes[leg.i]}",
                                    subgoal=nodes[leg.i], route=tuple(nodes))
                     continue
             # -- lost or stuck: re-localize and re-plan
-            leg.lost = leg.lost + 1 if s.status is ServoStatus.LOST else 0
+            if self._turning_toward(s) and leg.turning < self._turn_steps:
+                leg.turning += 1  # a subgoal a turn away is not lost while the turn lasts
+            else:
+                leg.lost = leg.lost + 1 if s.status is ServoStatus.LOST else 0
+                leg.turning = leg.turning if s.status is ServoStatus.LOST else 0
             stuck = self._time - leg.since_switch_s > cfg.subgoal_timeout_s and not final
             fooled = leg.settle.false_arrival >= cfg.lost_after_steps
             if leg.lost >= cfg.lost_after_steps or stuck or fooled:
@@ -413,18 +451,137 @@ class Navigator:
                     self.planner.penalize(prev, sub)
                 yield NavEvent(EventKind.LOST, self._time, f"{why} subgoal {sub}", subgoal=sub, route=tuple(nodes))
                 out.replans += 1
-                if out.replans > cfg.max_replans:
-                    raise _Failed(NavStatus.FAILED, f"gave up after {cfg.max_replans} re-plans ({why} subgoal {sub})")
+                left = budget_s - self._time
+                if out.replans > cfg.max_replans and left <= cfg.give_up_budget_fraction * budget_s:
+                    raise _Failed(NavStatus.FAILED, f"gave up after {out.replans - 1} re-plans ({why} subgoal {sub}; "
+                                  f"tried: {self._tried_summary()}; {max(0.0, left):.0f} s of {budget_s:.0f} s left)")
                 self._hold()
-                yield from self._localize()
+                if fooled:  # the goal "verified" at a look-alike place: no ground to back off to
+                    self._last_good = None
+                yield from self._recover()
                 new = self._plan(self._here, goal)
-                budget_s = max(budget_s, self._time + cfg.time_budget_base_s + cfg.time_budget_s_per_hop * max(1, new.hops))
+                if out.replans <= cfg.max_replans:
+                    budget_s = max(budget_s, self._time + cfg.time_budget_base_s + cfg.time_budget_s_per_hop * max(1, new.hops))
                 out.route = tuple(new.nodes)
                 leg = self._start_leg(new.nodes)
                 yield NavEvent(EventKind.REPLANNED, self._time, f"new route {leg.nodes}", subgoal=leg.nodes[0],
                                route=tuple(leg.nodes))
                 continue
-            self._move(s.command)
+            self._move(s.command, trail=True)
+
+    # ------------------------------------------------------------------ recovery
+    def _recover(self) -> Iterator[NavEvent]:
+        """After a loss: back off toward the last node that verified well, then re-localize near it
+        (searching by turning in place). Sets ``self._here``; never fails."""
+        backed = self._back_off()
+        if backed > 0:
+            self._count("backed off", backed)
+        yield from self._relocalize()
+
+    def _back_off(self) -> float:
+        """Drive the inverse of the commands sent since the last good verification, newest first,
+        until that node verifies again. Returns the time driven [s]."""
+        cfg, target = self.config, self._last_good
+        trail = list(self._trail)[::-1]
+        self._trail.clear()
+        if target is None or not trail:
+            return 0.0
+        # a command is disturbance compensation plus intent: undo the intent, keep the compensation
+        hold = self.servo.hold_command(self._estimate) if self._estimate is not None else STOP
+        scfg = self.servo.config
+        driven = 0.0
+        for k, cmd in enumerate(trail):
+            if k % BACKOFF_CHECK_EVERY == 0 and k > 0:
+                _, q = self._look()
+                if self._match(q, target).inliers >= cfg.switch_min_inliers:
+                    break
+            back = Command(2 * hold.v_f - cmd.v_f, 2 * hold.v_h - cmd.v_h, 2 * hold.omega - cmd.omega)
+            self._move(back.clipped(scfg.max_speed_mps, scfg.max_turn_rps).for_vehicle(self.vehicle))
+            driven += cfg.control_period_s
+        self._hold()
+        return driven
+
+    def _near(self, node: int | None) -> set[int]:
+        """The nodes within ``recover_local_hops`` of ``node`` (empty for None)."""
+        if node is None:
+            return set()
+        return set(nx.single_source_shortest_path_length(self.map.graph, node, cutoff=self.config.recover_local_hops))
+
+    def _relocalize(self) -> Iterator[NavEvent]:
+        """Re-localize after a loss, turning in place to search: prefer a verified node near the last
+        good one; take a far answer only confident and confirmed by a second look; after a full
+        turn with neither, keep the last good node (or the last localization)."""
+        cfg, min_inliers = self.config, self.map.config.match.min_inliers
+        near = self._near(self._last_good)
+        # the localizer's ranking among the near nodes only (appearance and inliers: the node with
+        # the most inliers may be one looking down the same corridor from metres away)
+        away = [n for n in self.map.nodes if n not in near]
+        turned, far, found = 0.0, None, None
+        best_local: tuple[int, int] | None = None  # (inliers, node) of the best weakly verified near node
+        while found is None:
+            _, q = self._look(localizing=True)
+            if near:
+                local = self.localizer.localize_query(q, exclude=away)
+                inliers = local.verification.inliers if local.verification is not None else 0
+                if inliers >= cfg.switch_min_inliers:
+                    found = (local.node, f"verified near node {self._last_good} ({inliers} inliers)")
+                    break
+                if inliers >= min_inliers and (best_local is None or inliers > best_local[0]):
+                    best_local = (inliers, local.node)
+            loc = self.localizer.localize_query(q)
+            if loc.localized and loc.node in near:
+                found = (loc.node, f"confidence {loc.confidence:.2f}")
+                break
+            confident = loc.localized and (loc.confidence >= cfg.recover_far_confidence or not loc.calibrated)
+            if confident and far is not None and (far == loc.node or far in self.map.neighbours(loc.node)):
+                found = (loc.node, f"confidence {loc.confidence:.2f}, confirmed by a second look")
+                self._count("far re-localizations")
+                break
+            far = loc.node if confident else None
+            if turned >= 2 * math.pi:
+                break
+            # search: turn for scan_every_s, then look again
+            d_omega = self._estimate.d_omega if self._estimate is not None and self._estimate.ready else 0.0
+            turn = Command(0.0, 0.0, cfg.scan_turn_rps - d_omega)
+            for _ in range(max(1, int(round(cfg.scan_every_s / cfg.control_period_s)))):
+                self._move(turn)
+                turned += cfg.scan_turn_rps * cfg.control_period_s
+        self._hold()
+        if turned > 0:
+            self._count("searched", math.degrees(turned))
+        if found is None:
+            if best_local is not None:
+                found = (best_local[1], f"best near node {self._last_good} ({best_local[0]} inliers)")
+            elif self._last_good is not None or self._here is not None:
+                keep = self._last_good if self._last_good is not None else self._here
+                found = (keep, "nothing verified in a full turn: kept the last good node")
+            else:
+                raise _Failed(NavStatus.FAILED, "could not localize in the map after a full turn")
+        self._count("re-localizations")
+        self._here = found[0]
+        yield NavEvent(EventKind.LOCALIZED, self._time, f"at node {found[0]} ({found[1]})", subgoal=found[0])
+
+    def _count(self, what: str, amount: float = 1.0) -> None:
+        self._tried[what] = self._tried.get(what, 0.0) + amount
+
+    def _tried_summary(self) -> str:
+        """What recovery did so far, in words (the final failure message)."""
+        t = self._tried
+        parts = []
+        if "backed off" in t:
+            parts.append(f"backed off {t['backed off']:.0f} s toward nodes that verified well")
+        if "searched" in t:
+            parts.append(f"turned {t['searched']:.0f} deg in place searching")
+        if "re-localizations" in t:
+            parts.append(f"re-localized {t['re-localizations']:.0f} times ({t.get('far re-localizations', 0):.0f} far)")
+        return ", ".join(parts) or "nothing"
+
+    def _turning_toward(self, s: ServoOutput) -> bool:
+        """Blind, and the dead-reckoned heading to the subgoal still puts it outside the camera's
+        view: the servo is turning toward it (at a corner taught as a turn in place the next
+        keyframe lies a turn away; docs/theory.md section 4.4 keeps it in the field of view)."""
+        theta = s.disturbance.theta
+        return s.status is ServoStatus.LOST and math.isfinite(theta) and abs(theta) > self._half_fov_rad
 
     def _keyframe_heading(self, a: int, b: int) -> float:
         """Heading of keyframe ``a`` relative to keyframe ``b`` from their images [rad]; NaN when
