@@ -281,6 +281,18 @@ class Navigator:
         self._camera_height_m = height if height is not None else getattr(robot, "camera_height_m", None)
 
     # ------------------------------------------------------------------ robot I/O
+    def _scan_step(self) -> float:
+        """Turn in place for ``scan_every_s`` (the estimated yaw disturbance compensated); returns the
+        angle turned [rad]."""
+        cfg = self.config
+        d_omega = self._estimate.d_omega if self._estimate is not None and self._estimate.ready else 0.0
+        turn = Command(0.0, 0.0, cfg.scan_turn_rps - d_omega)
+        turned = 0.0
+        for _ in range(max(1, int(round(cfg.scan_every_s / cfg.control_period_s)))):
+            self._move(turn)
+            turned += cfg.scan_turn_rps * cfg.control_period_s
+        return turned
+
     def _look(self, localizing: bool = False) -> tuple[np.ndarray, Query]:
         image = self.robot.render()
         # the vocabulary words only serve global localization, not the servo's matching each period
@@ -318,12 +330,7 @@ class Navigator:
                 break
             if turned >= 2 * math.pi:
                 break
-            # scan: turn for scan_every_s, then look again
-            d_omega = self._estimate.d_omega if self._estimate is not None and self._estimate.ready else 0.0
-            turn = Command(0.0, 0.0, cfg.scan_turn_rps - d_omega)
-            for _ in range(max(1, int(round(cfg.scan_every_s / cfg.control_period_s)))):
-                self._move(turn)
-                turned += cfg.scan_turn_rps * cfg.control_period_s
+            turned += self._scan_step()  # turn for scan_every_s, then look again
         self._hold()
         if best is None or not best.localized:
             conf = best.confidence if best else 0.0
@@ -540,12 +547,7 @@ class Navigator:
             far = loc.node if confident else None
             if turned >= 2 * math.pi:
                 break
-            # search: turn for scan_every_s, then look again
-            d_omega = self._estimate.d_omega if self._estimate is not None and self._estimate.ready else 0.0
-            turn = Command(0.0, 0.0, cfg.scan_turn_rps - d_omega)
-            for _ in range(max(1, int(round(cfg.scan_every_s / cfg.control_period_s)))):
-                self._move(turn)
-                turned += cfg.scan_turn_rps * cfg.control_period_s
+            turned += self._scan_step()  # search: turn for scan_every_s, then look again
         self._hold()
         if turned > 0:
             self._count("searched", math.degrees(turned))
