@@ -4,18 +4,18 @@ Images only: a :class:`Localizer` receives images and the map (whose keyframes c
 camera intrinsics); it never sees a pose.
 
 Scoring. For a query image every node gets an *appearance score*, in robust z-units (median / MAD
-across the map's nodes): the bag-of-words cosine similarity and the patch-normalised thumbnail
-distance, summed (``descriptor="fused"``; ``"bow"`` or ``"thumbnail"`` use one of them). The
-thumbnail distance to each node is first standardised by that node's own distances to the rest of
-the map in sequence mode, so a bland image resembling everything (a "hub") does not collect the
-belief. The
-``shortlist_k`` best nodes are verified geometrically; each verified inlier beyond the chance level
+across the map's nodes): the bag-of-words cosine similarity, the whole-image HOG similarity and the
+patch-normalised thumbnail distance, summed (``descriptor="fused"``; ``"bow"``, ``"hog"`` or
+``"thumbnail"`` use one of them). The thumbnail distance to each node is first standardised by that
+node's own distances to the rest of the map in sequence mode, so a bland image resembling
+everything (a "hub") does not collect the belief. The ``shortlist_k`` best nodes are verified geometrically; each verified inlier beyond the chance level
 (the matcher's ``min_inliers``) adds ``inlier_weight``. Verification matches descriptors only under
 the same vocabulary-tree node (``guided_matching``, ORB-SLAM's bag-of-words search): a few hundred
 distance evaluations per feature become a few, with the same recall (see LocalizeConfig).
-A softmax of the scores (sharpness ``beta``) is the probability of being at each node; the
-*confidence* of an answer is the probability mass on the answered node and its graph neighbours.
-Under ``min_confidence`` the answer is ``unknown``: "not in this map".
+A softmax of the scores (sharpness ``beta``) puts a probability mass on the answered node and its
+graph neighbours; on a calibrated map (:mod:`topomap.calibration`) the *confidence* is instead the
+calibrated probability that the answer is right. Under ``min_confidence`` the answer is ``unknown``;
+a single frame is declared only when its answer verifies geometrically.
 
 Sequences. :class:`SequenceLocalizer` is a discrete Bayes filter whose states are (node, speed):
 the position along the chain of nodes of a map sequence and a speed in nodes per frame (negative:
@@ -24,8 +24,9 @@ to their neighbours with ``speed_change_probability``, a ``graph_hop_probability
 edge (loop closures, links between sequences) and a ``jump_probability`` teleports anywhere, so the
 filter recovers after a kidnapping. The speed states are what SeqSLAM's trajectory search gets
 right: a camera moving through the map keeps moving the same way, and a camera standing still keeps
-a stable answer. The observation model is the softmax of the appearance scores; the answered node is
-then verified geometrically.
+a stable answer. The observation model is the softmax of the appearance scores, flattened on noisy,
+flat or clipped frames; a virtual "elsewhere" state, updated by geometric verification (keypoint
+maps) or by the filter's predictive likelihood (appearance-only maps), says "not in this map".
 """
 
 from __future__ import annotations
@@ -110,7 +111,8 @@ class Localization:
     """Answer for one query image.
 
     ``node``: best node (also given when ``status`` is ``unknown``, as the best guess);
-    ``confidence``: probability mass on the node and its neighbours, in [0, 1];
+    ``confidence``: in [0, 1], the calibrated probability that ``node`` is right on a calibrated map,
+    else the probability mass on the node and its neighbours;
     ``candidates``: the ranking, best first (Recall@N reads it); ``verification``: the geometric
     check against the answered node (inlier matches, usable by a servo), or ``None``;
     ``calibrated``: whether ``confidence`` is the map's calibrated probability that ``node`` is
@@ -267,6 +269,12 @@ class Localizer:
         -> 0.86, Nordland 0.62 -> 0.68) but costs single frames (corridor 0.62 -> 0.52), so the
         sequence filter uses it and single-frame queries do not.
         """
+        plain, hubbed = self._appearances(q, hub_correction)
+        return hubbed if hub_correction else plain
+
+    def _appearances(self, q: Query, hub_correction: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """The appearance score without and (``hub_correction``) with the thumbnails' hub correction:
+        the bag of words and HOG are computed once for both (the sequence filter needs both)."""
         score = np.zeros(len(self.node_ids))
         if self.use_bow:
             score += _robust_z(self.map.index.scores(q.features, self._query_words(q))[self._bow_rows].astype(np.float64))
@@ -283,16 +291,18 @@ class Localizer:
             # corridor's sequence mode (see docs/localization.md)
             z = _robust_z(self.global_descriptors.similarity(g, rows).astype(np.float64))
             score += z if rows is None else _spread(z, rows, len(score))
-        if self.use_thumbnail:
-            d = sad(q.descriptor, self._descriptors if rows is None else self._descriptors[rows]).astype(np.float64)
-            if hub_correction:
-                if self._desc_stats is None:
-                    self._desc_stats = _distance_statistics(self._descriptors)
-                mu, sd = self._desc_stats
-                d = (d - mu) / sd if rows is None else (d - mu[rows]) / sd[rows]
-            z = _robust_z(-d)
-            score += z if rows is None else _spread(z, rows, len(score))
-        return score
+        if not self.use_thumbnail:
+            return score, (score.copy() if hub_correction else None)
+        d = sad(q.descriptor, self._descriptors if rows is None else self._descriptors[rows]).astype(np.float64)
+        z = _robust_z(-d)
+        plain = score + (z if rows is None else _spread(z, rows, len(score)))
+        if not hub_correction:
+            return plain, None
+        if self._desc_stats is None:
+            self._desc_stats = _distance_statistics(self._descriptors)
+        mu, sd = self._desc_stats
+        z = _robust_z(-((d - mu) / sd if rows is None else (d - mu[rows]) / sd[rows]))
+        return plain, score + (z if rows is None else _spread(z, rows, len(score)))
 
     def verify_candidates(self, q: Query, score: np.ndarray, k: int | None = None) -> dict[int, Verification]:
         """Geometric verification of the ``k`` best-scoring nodes: ``{row: Verification}``."""
@@ -339,11 +349,12 @@ class Localizer:
             self._node_words.move_to_end(node)
         return cached
 
-    def total_score(self, q: Query, k: int | None = None, exclude: np.ndarray | None = None
-                    ) -> tuple[np.ndarray, dict[int, Verification]]:
-        """Appearance score plus the inlier bonus of the verified shortlist; rows in ``exclude``
-        score ``-inf`` (self-supervised calibration leaves a keyframe out of its own query)."""
-        score = self.appearance(q)
+    def total_score(self, q: Query, k: int | None = None, exclude: np.ndarray | None = None,
+                    appearance: np.ndarray | None = None) -> tuple[np.ndarray, dict[int, Verification]]:
+        """Appearance score (``appearance`` when already computed) plus the inlier bonus of the
+        verified shortlist; rows in ``exclude`` score ``-inf`` (self-supervised calibration leaves a
+        keyframe out of its own query)."""
+        score = self.appearance(q) if appearance is None else appearance.copy()
         if exclude is not None and len(exclude):
             score[exclude] = -np.inf
         checks = self.verify_candidates(q, score, k)
@@ -409,8 +420,24 @@ class Localizer:
 
     def localize_query(self, q: Query, exclude: Iterable[int] = ()) -> Localization:
         """Localization of a prepared query; node ids in ``exclude`` are never answered."""
-        ex = np.array([self._row[int(n)] for n in exclude if int(n) in self._row], np.intp)
-        score, checks = self.total_score(q, exclude=ex)
+        loc, _ = self._single_frame(q, self.rows_of(exclude))
+        if loc.localized and not (loc.verification is not None and loc.verification.verified):
+            # never confidently wrong: one frame whose answer did not verify geometrically is not a
+            # place recognised, however probable its appearance makes it (measured: a calibrated
+            # appearance-only answer declared a corridor frame to be in the Nordland map at 0.97);
+            # on maps without the keypoints to verify, the sequence filter is what can declare
+            loc = dataclasses.replace(loc, status=LocalizationStatus.UNKNOWN)
+        return loc
+
+    def rows_of(self, node_ids: Iterable[int]) -> np.ndarray:
+        """Rows (positions in ``node_ids``) of the given node ids that are in the map."""
+        return np.array([self._row[int(n)] for n in node_ids if int(n) in self._row], np.intp)
+
+    def _single_frame(self, q: Query, exclude: np.ndarray, appearance: np.ndarray | None = None
+                      ) -> tuple[Localization, dict[int, Verification]]:
+        """The frame on its own — its answer with its evidence and (calibrated map) probability,
+        before the verification rule of :meth:`localize_query` — and the shortlist's verifications."""
+        score, checks = self.total_score(q, exclude=exclude, appearance=appearance)
         p = self.likelihood(score)
         p /= p.sum()
 
@@ -420,14 +447,7 @@ class Localizer:
                 return mass, False, ev
             return self.calibration.single.probability(ev), True, ev
 
-        loc = self.answer(p, score, checks, score, confidence)
-        if loc.localized and not (loc.verification is not None and loc.verification.verified):
-            # never confidently wrong: one frame whose answer did not verify geometrically is not a
-            # place recognised, however probable its appearance makes it (measured: a calibrated
-            # appearance-only answer declared a corridor frame to be in the Nordland map at 0.97);
-            # on maps without the keypoints to verify, the sequence filter is what can declare
-            loc = dataclasses.replace(loc, status=LocalizationStatus.UNKNOWN)
-        return loc
+        return self.answer(p, score, checks, score, confidence), checks
 
     def _usable_calibration(self) -> Calibration | None:
         """The map's calibration when it was fitted for this map and this scoring, else ``None``."""
@@ -464,7 +484,6 @@ class SequenceLocalizer:
         self._state: np.ndarray | None = None  # (N, S) joint belief given that the camera is in the map
         self.belief: np.ndarray | None = None
         self.elsewhere = 0.0
-        # appearance-only maps (thumbnail descriptor: keypoints too few to verify) cannot tell
         # "elsewhere" needs evidence that differs between mapped and unmapped frames: geometric
         # verification where keyframes carry the features for it, else whether the frames follow the
         # map's topology (the filter's predictive likelihood, see update_query)
@@ -510,20 +529,14 @@ class SequenceLocalizer:
     def update_query(self, q: Query, exclude: Iterable[int] = ()) -> Localization:
         """Filter one prepared frame; node ids in ``exclude`` get no observation weight (calibration)."""
         loc, cfg = self.loc, self.loc.config
-        ex = np.array([loc._row[int(n)] for n in exclude if int(n) in loc._row], np.intp)
+        ex = loc.rows_of(exclude)
+        plain, score = loc._appearances(q, hub_correction=True)
         # the frame on its own: its evidence, and (calibrated maps) the probability that it is right
-        s_score, checks = loc.total_score(q, exclude=ex)
-        p1 = loc.likelihood(s_score)
-        p1 /= p1.sum()
-        best1 = int(np.argmax(s_score))
-        ev1 = loc.evidence(q, s_score, best1, min(1.0, loc.neighbourhood_mass(p1, best1)), checks)
-        p_frame = loc.calibration.single.probability(ev1) if loc.calibration else None
-        self.frame = loc.answer(p1, s_score, checks, s_score, lambda b, m: (p_frame if p_frame is not None else m,
-                                                                            p_frame is not None, ev1))
+        self.frame, checks = loc._single_frame(q, ex, plain)
+        ev1 = self.frame.evidence
         prior, e = self._predict()
         # appearance places the camera within the map (if it is in the map); a noisy or flat frame
         # (night, fog) says less, so its likelihood is flattened instead of pushing belief anywhere
-        score = loc.appearance(q, hub_correction=True)
         if len(ex):
             score[ex] = -np.inf
         # (contrast lost and pixels clipped count too: an over-exposed frame keeps its noise level and
@@ -555,7 +568,7 @@ class SequenceLocalizer:
         self.belief = belief * (1.0 - e)
 
         calibrated = loc.calibration is not None
-        frame_ev = {**ev1, "frame_probability": p_frame, "elsewhere": e}
+        frame_ev = {**ev1, "frame_probability": self.frame.confidence if calibrated else None, "elsewhere": e}
 
         def confidence(row: int, mass: float) -> tuple[float, bool, dict]:
             return mass, calibrated, frame_ev
