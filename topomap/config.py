@@ -16,7 +16,7 @@ import types
 import typing
 from dataclasses import dataclass, field
 
-from topomap.errors import ConfigError, unknown_choice
+from topomap.errors import ConfigError, choose, parse_enum, unknown_choice
 
 __all__ = [
     "FeatureConfig",
@@ -39,12 +39,7 @@ class ScaleConvention(str, enum.Enum):
 
 def scale_convention(name: str | ScaleConvention) -> ScaleConvention:
     """Parse a scale convention name; an unknown one lists the valid choices."""
-    if isinstance(name, ScaleConvention):
-        return name
-    try:
-        return ScaleConvention(str(name).lower())
-    except ValueError:
-        raise unknown_choice("scale convention", name, [s.value for s in ScaleConvention]) from None
+    return parse_enum(ScaleConvention, name, "scale convention")
 
 
 class UnicycleLaw(str, enum.Enum):
@@ -56,12 +51,7 @@ class UnicycleLaw(str, enum.Enum):
 
 def parse_unicycle_law(name: str | UnicycleLaw) -> UnicycleLaw:
     """Parse a unicycle law name; an unknown one lists the valid choices."""
-    if isinstance(name, UnicycleLaw):
-        return name
-    try:
-        return UnicycleLaw(str(name).lower())
-    except ValueError:
-        raise unknown_choice("unicycle law", name, [s.value for s in UnicycleLaw]) from None
+    return parse_enum(UnicycleLaw, name, "unicycle law")
 
 
 #: Most keypoints per image: 100k SIFT descriptors already take 51 MB per image.
@@ -296,10 +286,7 @@ BUILD_PRESETS: dict[str, BuildConfig] = {
 
 def build_preset(name: str) -> BuildConfig:
     """The named :class:`BuildConfig`; unknown names list the valid ones."""
-    try:
-        return BUILD_PRESETS[name]
-    except KeyError:
-        raise unknown_choice("build preset", name, BUILD_PRESETS) from None
+    return choose(BUILD_PRESETS, name, "build preset")
 
 
 # ---------------------------------------------------------------------- (de)serialisation
@@ -460,10 +447,7 @@ SERVO_PRESETS: dict[str, ServoConfig] = {
 
 def servo_preset(name: str) -> ServoConfig:
     """The named :class:`ServoConfig`; unknown names list the valid ones."""
-    try:
-        return SERVO_PRESETS[name]
-    except KeyError:
-        raise unknown_choice("servo preset", name, SERVO_PRESETS) from None
+    return choose(SERVO_PRESETS, name, "servo preset")
 
 
 __all__ += ["ScaleConvention", "scale_convention", "UnicycleLaw", "parse_unicycle_law", "RelativePoseConfig", "ObserverConfig", "ServoConfig", "SERVO_PRESETS", "servo_preset"]
@@ -529,10 +513,7 @@ PLAN_PRESETS: dict[str, PlanConfig] = {
 
 def plan_preset(name: str) -> PlanConfig:
     """The named :class:`PlanConfig`; unknown names list the valid ones."""
-    try:
-        return PLAN_PRESETS[name]
-    except KeyError:
-        raise unknown_choice("plan preset", name, PLAN_PRESETS) from None
+    return choose(PLAN_PRESETS, name, "plan preset")
 
 
 __all__ += ["PlanConfig", "PLAN_PRESETS", "plan_preset"]

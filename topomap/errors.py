@@ -9,7 +9,9 @@ Messages say what is wrong *and* what to do, in one line.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import enum
+from collections.abc import Iterable, Mapping
+from typing import TypeVar
 
 import numpy as np
 
@@ -96,6 +98,29 @@ def points_array(a, name: str, rows: int | None = None) -> np.ndarray:
     if rows is not None and len(arr) != rows:
         raise ShapeError(f"{name} has {len(arr)} rows where {rows} are expected: pass the matches row by row")
     return arr.astype(np.float64, copy=False)
+
+
+_T = TypeVar("_T")
+_E = TypeVar("_E", bound=enum.Enum)
+
+
+def choose(registry: Mapping[str, _T], name: str, what: str) -> _T:
+    """``registry[name]``; an unknown name is :func:`unknown_choice`'s error listing the valid ones."""
+    try:
+        return registry[name]
+    except KeyError:
+        raise unknown_choice(what, name, registry) from None
+
+
+def parse_enum(cls: type[_E], name: str | _E, what: str) -> _E:
+    """A member of the string enum ``cls`` from itself or its (case-insensitive) value; an unknown
+    value is :func:`unknown_choice`'s error listing the valid ones."""
+    if isinstance(name, cls):
+        return name
+    try:
+        return cls(str(name).lower())
+    except ValueError:
+        raise unknown_choice(what, name, [k.value for k in cls]) from None
 
 
 def unknown_choice(what: str, value: object, choices: Iterable[str]) -> ConfigError:

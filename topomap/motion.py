@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from topomap.errors import unknown_choice
+from topomap.errors import parse_enum
 
 __all__ = ["VehicleKind", "Command", "vehicle_kind", "wrap_angle", "saturate"]
 
@@ -42,12 +42,7 @@ class VehicleKind(str, enum.Enum):
 
 def vehicle_kind(name: str | VehicleKind) -> VehicleKind:
     """Parse a vehicle name; an unknown one lists the valid choices."""
-    if isinstance(name, VehicleKind):
-        return name
-    try:
-        return VehicleKind(str(name).lower())
-    except ValueError:
-        raise unknown_choice("vehicle", name, [k.value for k in VehicleKind]) from None
+    return parse_enum(VehicleKind, name, "vehicle")
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from topomap.errors import ConfigError, unknown_choice
+from topomap.errors import ConfigError, choose
 
 __all__ = ["Photometric", "PHOTOMETRIC_PRESETS", "photometric_preset", "apply_photometric", "random_photometric"]
 
@@ -67,10 +67,8 @@ PHOTOMETRIC_PRESETS: dict[str, Photometric] = {
 
 
 def photometric_preset(name: str) -> Photometric:
-    try:
-        return PHOTOMETRIC_PRESETS[name]
-    except KeyError:
-        raise unknown_choice("photometric preset", name, PHOTOMETRIC_PRESETS) from None
+    """The preset called ``name``; an unknown name lists the valid ones."""
+    return choose(PHOTOMETRIC_PRESETS, name, "photometric preset")
 
 
 def _srgb_to_linear(x: np.ndarray) -> np.ndarray:

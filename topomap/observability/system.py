@@ -15,7 +15,7 @@ from fractions import Fraction
 
 import sympy as sp
 
-from topomap.errors import ConfigError, unknown_choice
+from topomap.errors import ConfigError, parse_enum
 from topomap.motion import VehicleKind, vehicle_kind
 
 __all__ = [
@@ -63,12 +63,7 @@ class DirectionKind(str, enum.Enum):
 
 def input_kind(name: str | InputKind) -> InputKind:
     """Parse ``known`` / ``unknown``; an unknown value lists the choices."""
-    if isinstance(name, InputKind):
-        return name
-    try:
-        return InputKind(str(name).lower())
-    except ValueError:
-        raise unknown_choice("inputs", name, [k.value for k in InputKind]) from None
+    return parse_enum(InputKind, name, "inputs")
 
 
 _READING_ALIASES = {"a": Reading.ANALYTIC, "p": Reading.POLYNOMIAL}
@@ -76,15 +71,9 @@ _READING_ALIASES = {"a": Reading.ANALYTIC, "p": Reading.POLYNOMIAL}
 
 def reading_kind(name: str | Reading) -> Reading:
     """Parse ``analytic`` (``A``) / ``polynomial`` (``P``); an unknown value lists the choices."""
-    if isinstance(name, Reading):
-        return name
-    key = str(name).lower()
-    if key in _READING_ALIASES:
-        return _READING_ALIASES[key]
-    try:
-        return Reading(key)
-    except ValueError:
-        raise unknown_choice("reading", name, [k.value for k in Reading]) from None
+    if not isinstance(name, Reading) and str(name).lower() in _READING_ALIASES:
+        return _READING_ALIASES[str(name).lower()]
+    return parse_enum(Reading, name, "reading")
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from topomap.errors import ConfigError, unknown_choice
+from topomap.errors import ConfigError, choose, unknown_choice
 from topomap.photometric import Photometric, apply_photometric
 
 __all__ = ["Conditions", "CONDITION_PRESETS", "conditions_preset", "parse_conditions", "apply_conditions",
@@ -162,10 +162,7 @@ CONDITION_PRESETS: dict[str, Conditions] = {
 
 def conditions_preset(name: str) -> Conditions:
     """The preset called ``name``; an unknown name lists the valid ones."""
-    try:
-        return CONDITION_PRESETS[name]
-    except KeyError:
-        raise unknown_choice("conditions preset", name, CONDITION_PRESETS) from None
+    return choose(CONDITION_PRESETS, name, "conditions preset")
 
 
 def parse_conditions(spec: str | Conditions | dict | None) -> Conditions:

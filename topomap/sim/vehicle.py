@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from topomap.errors import ConfigError, unknown_choice
+from topomap.errors import ConfigError, choose, unknown_choice
 from topomap.motion import Command, VehicleKind, vehicle_kind
 
 __all__ = [
@@ -125,10 +125,7 @@ DISTURBANCE_PRESETS: dict[str, DisturbanceConfig] = {
 
 def disturbance_preset(name: str) -> DisturbanceConfig:
     """The named preset; an unknown name lists the valid ones."""
-    try:
-        return DISTURBANCE_PRESETS[name]
-    except KeyError:
-        raise unknown_choice("disturbance preset", name, DISTURBANCE_PRESETS) from None
+    return choose(DISTURBANCE_PRESETS, name, "disturbance preset")
 
 
 def parse_disturbance(spec: str | DisturbanceConfig | None) -> DisturbanceConfig:
