@@ -14,9 +14,12 @@ import dataclasses
 import enum
 import types
 import typing
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
 from topomap.errors import ConfigError, choose, parse_enum, unknown_choice
+
+_P = typing.TypeVar("_P")
 
 __all__ = [
     "FeatureConfig",
@@ -27,6 +30,7 @@ __all__ = [
     "build_preset",
     "to_dict",
     "from_dict",
+    "preset_with_overrides",
 ]
 
 
@@ -282,6 +286,28 @@ BUILD_PRESETS: dict[str, BuildConfig] = {
     # Dense keyframes (teach-and-repeat): nodes close together, servoing between them is easy.
     "dense": BuildConfig(keyframe_min_inliers=120, keyframe_min_ratio=0.35),
 }
+
+
+def preset_with_overrides(spec: str, what: str, presets: Mapping[str, _P], names: Iterable[str]
+                          ) -> tuple[_P, list[tuple[str, str]]]:
+    """Split ``"PRESET"``, ``"key=value,..."`` or ``"PRESET,key=value,..."``: the named preset of
+    ``presets`` (``"none"`` when no preset is named) and the ``(key, raw value)`` overrides, each key
+    one of ``names``; the caller converts the values. Errors name ``what`` ("disturbance", ...)."""
+    parts = [p.strip() for p in str(spec).split(",") if p.strip()]
+    base = presets["none"]
+    if parts and "=" not in parts[0]:
+        base = choose(presets, parts.pop(0), f"{what} preset")
+    names = set(names)
+    items = []
+    for p in parts:
+        key, eq, val = p.partition("=")
+        key = key.strip()
+        if not eq:
+            raise ConfigError(f"{what} item {p!r} must be key=value (only the first item may name a preset)")
+        if key not in names:
+            raise unknown_choice(f"{what} setting", key, names)
+        items.append((key, val))
+    return base, items
 
 
 def build_preset(name: str) -> BuildConfig:

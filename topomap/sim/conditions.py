@@ -30,6 +30,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from topomap.config import preset_with_overrides
 from topomap.errors import ConfigError, choose, unknown_choice
 from topomap.photometric import Photometric, apply_photometric
 
@@ -177,21 +178,12 @@ def parse_conditions(spec: str | Conditions | dict | None) -> Conditions:
         return spec
     if isinstance(spec, dict):
         return Conditions.from_dict(spec)
-    parts = [p.strip() for p in str(spec).split(",") if p.strip()]
-    if not parts:
-        return CONDITION_PRESETS["none"]
-    base = CONDITION_PRESETS["none"]
-    if "=" not in parts[0]:
-        base = conditions_preset(parts.pop(0))
-    names = {f.name for f in dataclasses.fields(Conditions)} - {"name"}
+    base, items = preset_with_overrides(spec, "conditions", CONDITION_PRESETS,
+                                        (f.name for f in dataclasses.fields(Conditions) if f.name != "name"))
+    if not items:
+        return base
     values: dict = {}
-    for p in parts:
-        key, eq, val = p.partition("=")
-        key = key.strip()
-        if not eq:
-            raise ConfigError(f"conditions item {p!r} must be key=value (only the first item may name a preset)")
-        if key not in names:
-            raise unknown_choice("conditions setting", key, names)
+    for key, val in items:
         try:
             if key in _VECTOR_FIELDS:
                 values[key] = tuple(float(x) for x in val.split(":"))

@@ -23,7 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from topomap.errors import ConfigError, choose, unknown_choice
+from topomap.config import preset_with_overrides
+from topomap.errors import ConfigError, choose
 from topomap.motion import Command, VehicleKind, vehicle_kind
 
 __all__ = [
@@ -138,21 +139,12 @@ def parse_disturbance(spec: str | DisturbanceConfig | None) -> DisturbanceConfig
         return DISTURBANCE_PRESETS["none"]
     if isinstance(spec, DisturbanceConfig):
         return spec
-    parts = [p.strip() for p in str(spec).split(",") if p.strip()]
-    if not parts:
-        return DISTURBANCE_PRESETS["none"]
-    base = DISTURBANCE_PRESETS["none"]
-    if "=" not in parts[0]:
-        base = disturbance_preset(parts.pop(0))
-    names = {f.name for f in dataclasses.fields(DisturbanceConfig)}
+    base, items = preset_with_overrides(spec, "disturbance", DISTURBANCE_PRESETS,
+                                        (f.name for f in dataclasses.fields(DisturbanceConfig)))
+    if not items:
+        return base
     values = {}
-    for p in parts:
-        key, eq, val = p.partition("=")
-        key = key.strip()
-        if not eq:
-            raise ConfigError(f"disturbance item {p!r} must be key=value (only the first item may name a preset)")
-        if key not in names:
-            raise unknown_choice("disturbance setting", key, names)
+    for key, val in items:
         try:
             values[key] = float(val)
         except ValueError:
