@@ -19,7 +19,7 @@ from topomap.errors import ConfigError, IndexMissingError
 from topomap.evaluate import evaluate
 from topomap.groundtruth import read_correspondences
 from topomap.images import open_sequence
-from topomap.localize import Localization, LocalizationStatus, Localizer, SequenceLocalizer
+from topomap.localize import RECENT_MIN_FRAMES, Localization, LocalizationStatus, Localizer, RecentScores, SequenceLocalizer
 from topomap.store import load_map, save_map
 
 #: Synthetic route: a 6000 px wide textured wall seen every STEP px; with keyframe_min_ratio 0.5
@@ -214,6 +214,10 @@ def test_bad_localize_config(route):
         LocalizeConfig(verify_ransac_method="lmeds")
     with pytest.raises(ConfigError, match="match_groups"):
         LocalizeConfig(match_groups=0)
+    with pytest.raises(ConfigError, match="recent_frames"):
+        LocalizeConfig(recent_frames=-1)
+    with pytest.raises(ConfigError, match="recent_min_spread"):
+        LocalizeConfig(recent_min_spread=0.0)
     empty = dataclasses.replace(route.map, nodes={}, index=None)
     with pytest.raises(ConfigError, match="no nodes"):
         Localizer(empty)
@@ -379,6 +383,68 @@ def test_corridor_standing_still(corridor):
         filt = SequenceLocalizer(corridor.loc)
         nodes = [filt.update_query(corridor.queries[i]).node for _ in range(20)]
         assert len(set(nodes[STILL_SETTLE_FRAMES:])) == 1, (i, nodes)
+
+
+@pytest.mark.slow
+def test_corridor_at_deep_night_the_filter_is_not_parked_on_a_look_alike(corridor):
+    """Under a synthetic deep night (-4.5 EV, noise 8) the filter's answers follow the camera instead
+    of settling on the nodes every dark frame resembles (before the recent-score contrast: 0.37 right,
+    measured 0.69), and nothing is declared wrongly."""
+    from topomap.images import to_gray_u8
+    from topomap.photometric import PHOTOMETRIC_PRESETS, apply_photometric
+
+    night = PHOTOMETRIC_PRESETS["deep-night"]
+    filt = SequenceLocalizer(corridor.loc)
+    answers = [filt.update(apply_photometric(to_gray_u8(f.image), night, np.random.default_rng(k)))
+               for k, f in enumerate(open_sequence(dataset("corridor") / "query"))]
+    right = [a.node in g for a, g in zip(answers, corridor.good)]
+    assert np.mean(right) >= 0.6, np.mean(right)
+    assert all(r for a, r in zip(answers, right) if a.localized)
+
+
+def _recent(frames: int = 20) -> RecentScores:
+    return RecentScores(frames, LocalizeConfig().recent_min_spread)
+
+
+def test_recent_scores_discount_a_node_that_matches_every_frame():
+    rng = np.random.default_rng(0)
+    recent = _recent()
+    for _ in range(10):
+        s = rng.normal(size=50)
+        s[7] = 6.0  # a hub: first on every frame
+        recent.push(s)
+    now = rng.normal(size=50)
+    now[7], now[30] = 6.0, 5.0  # node 30 stands out now only
+    assert np.argmax(now) == 7
+    assert np.argmax(recent.debias(now, 1.0)) == 30
+
+
+def test_recent_scores_leave_clean_and_early_frames_alone():
+    rng = np.random.default_rng(1)
+    recent = _recent()
+    for k in range(RECENT_MIN_FRAMES):
+        s = rng.normal(size=20)
+        assert np.array_equal(recent.debias(s, 1.0), s)  # too few frames to know a node's bias
+    s = rng.normal(size=20)
+    assert np.array_equal(recent.debias(s, 0.0), s)  # a frame like the map's is taken as it is
+    assert not np.array_equal(recent.debias(s, 0.5), s)
+
+
+def test_recent_scores_keep_only_the_last_frames():
+    rng = np.random.default_rng(2)
+    recent, frames = _recent(5), [rng.normal(size=30) for _ in range(12)]
+    for f in frames:
+        recent.push(f)
+    last = np.array(frames[-5:])
+    z = recent.contrast(frames[0])
+    fresh = _recent(5)
+    for f in frames[-5:]:
+        fresh.push(f)
+    np.testing.assert_allclose(z, fresh.contrast(frames[0]), atol=1e-9)  # running sums forget exactly
+    assert len(recent._past) == 5 and np.allclose(recent._sum, last.sum(axis=0))
+    recent.push(np.full(30, np.inf))  # a non-finite frame is not history
+    recent.push(rng.normal(size=31))  # another map's frame starts anew
+    assert len(recent._past) == 1 and _recent(0).debias(frames[0], 1.0) is frames[0]
 
 
 def test_fused_on_a_big_map_compares_thumbnails_of_the_bow_best_only(route, second_pass):

@@ -243,6 +243,12 @@ class LocalizeConfig:
     max_frame_ratio: float = 10.0
     leave_probability: float = 0.02  # per frame, from the map to elsewhere
     enter_probability: float = 0.02  # per frame, from elsewhere back into the map
+    # Degraded frames (night, noise, exposure): each node's score is also compared with its own
+    # scores over the last recent_frames frames (SeqSLAM's contrast enhancement, along time) — a
+    # node that matches every frame, e.g. a dark keyframe at night, says nothing about where the
+    # camera is — weighted by how degraded the frame is (0 on a frame like the map's). 0 = off.
+    recent_frames: int = 20
+    recent_min_spread: float = 0.5  # [z-units] a node's scores varying less than this: the same view
 
     def __post_init__(self) -> None:
         if self.shortlist_k < 0:
@@ -259,6 +265,8 @@ class LocalizeConfig:
                 raise ConfigError(f"{name} must lie in [0, 1)")
         if not 0.0 < self.verified_elsewhere < self.verified_in_map < 1.0:
             raise ConfigError("need 0 < verified_elsewhere < verified_in_map < 1")
+        if self.recent_frames < 0 or not self.recent_min_spread > 0:
+            raise ConfigError("recent_frames must be >= 0 and recent_min_spread > 0")
         if self.max_frame_ratio < 1.0:
             raise ConfigError("max_frame_ratio must be >= 1")
         if self.beta <= 0 or self.speed_step_nodes <= 0 or self.max_speed_nodes < 0:

@@ -35,7 +35,7 @@ import dataclasses
 import enum
 import logging
 import math
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
@@ -235,7 +235,12 @@ class Localizer:
         self._node_words: OrderedDict[int, np.ndarray] = OrderedDict()  # maps indexed without feature words
         self._verify_config = dataclasses.replace(tmap.config.match, ransac_method=self.config.verify_ransac_method,
                                                   ransac_max_iters=self.config.verify_max_iters)
-        self.calibration = self._usable_calibration() if self.config.use_calibration else None
+        stored = Calibration.from_meta(tmap.meta)
+        self.calibration = self._usable_calibration(stored) if self.config.use_calibration else None
+        # the keyframes' image quality a query's is judged against: a property of the map, whatever
+        # scoring the calibration was fitted for (without it, night frames would count as clean)
+        self.quality_reference: dict = (dict(stored.reference) if stored is not None
+                                        and stored.fitted_for.get("nodes") == len(self.node_ids) else {})
 
     # ------------------------------------------------------------------ pieces
     def prepare(self, image: np.ndarray, *, words: bool = True) -> Query:
@@ -390,8 +395,7 @@ class Localizer:
         v = checks.get(best)
         ev = {"margin": float(np.clip(margin, -10.0, 10.0)), "log_inliers": math.log1p(max(0, v.inliers) if v else 0),
               "log_odds": logit(mass)}
-        reference = self.calibration.reference if self.calibration else {}
-        ev.update(quality_evidence(q.quality or image_quality(q.image), reference))
+        ev.update(quality_evidence(q.quality or image_quality(q.image), self.quality_reference))
         return ev
 
     def answer(self, p: np.ndarray, score: np.ndarray, checks: dict[int, Verification], rank_by: np.ndarray,
@@ -449,9 +453,8 @@ class Localizer:
 
         return self.answer(p, score, checks, score, confidence), checks
 
-    def _usable_calibration(self) -> Calibration | None:
+    def _usable_calibration(self, cal: Calibration | None) -> Calibration | None:
         """The map's calibration when it was fitted for this map and this scoring, else ``None``."""
-        cal = Calibration.from_meta(self.map.meta)
         if cal is None:
             return None
         fitted = cal.fitted_for
@@ -460,6 +463,66 @@ class Localizer:
                         "(refit with `topomap index MAP`)")
             return None
         return cal
+
+
+#: Frames of history before a node's recent scores count as its bias (the mean of fewer is noise).
+RECENT_MIN_FRAMES = 3
+
+
+class RecentScores:
+    """Each node's appearance scores over the last ``frames`` frames, as running sums (O(N) a frame).
+
+    Under a change the map never saw (night, a noisy or mis-exposed camera) some nodes score high
+    against *every* frame — a dark keyframe against dark frames, a bland one against noise — and a
+    filter that multiplies the frames' likelihoods parks its belief there. Such a node's high score
+    says nothing about where the camera is; what does is how a node scores now *compared with its
+    own recent scores*: SeqSLAM's local contrast enhancement, taken along time instead of along
+    the reference sequence (which needs the frames to lie along it).
+    """
+
+    def __init__(self, frames: int, min_spread: float):
+        self.frames = int(frames)
+        self.min_spread = float(min_spread)
+        self._past: deque[np.ndarray] = deque()
+        self._sum: np.ndarray | None = None
+        self._sq: np.ndarray | None = None
+
+    def clear(self) -> None:
+        self._past.clear()
+        self._sum = self._sq = None
+
+    def contrast(self, score: np.ndarray) -> np.ndarray | None:
+        """(N,) robust z-scores of ``(score - recent mean) / max(recent spread, min_spread)``, or
+        ``None`` while fewer than :data:`RECENT_MIN_FRAMES` frames are known."""
+        n = len(self._past)
+        if n < RECENT_MIN_FRAMES or self._sum is None or len(score) != len(self._sum):
+            return None
+        mu = self._sum / n
+        sd = np.sqrt(np.maximum(self._sq / n - mu * mu, 0.0))
+        return _robust_z((score - mu) / np.maximum(sd, self.min_spread))
+
+    def debias(self, score: np.ndarray, weight: float) -> np.ndarray:
+        """``score`` blended with its :meth:`contrast` by ``weight`` in [0, 1]; the frame then joins
+        the history."""
+        c = self.contrast(score) if weight > 0 else None
+        out = score if c is None else (1.0 - weight) * score + weight * c
+        self.push(score)
+        return out
+
+    def push(self, score: np.ndarray) -> None:
+        if self.frames <= 0 or not np.all(np.isfinite(score)):
+            return
+        x = np.asarray(score, np.float64).copy()
+        if self._sum is None or len(x) != len(self._sum):
+            self.clear()
+            self._sum, self._sq = np.zeros_like(x), np.zeros_like(x)
+        if len(self._past) == self.frames:
+            old = self._past.popleft()
+            self._sum -= old
+            self._sq -= old * old
+        self._past.append(x)
+        self._sum += x
+        self._sq += x * x
 
 
 class SequenceLocalizer:
@@ -489,11 +552,13 @@ class SequenceLocalizer:
         # map's topology (the filter's predictive likelihood, see update_query)
         self._tells_elsewhere = localizer.config.elsewhere_state
         self.frame: Localization | None = None  # the last frame's single-frame answer
+        self._recent = RecentScores(cfg.recent_frames, cfg.recent_min_spread)
 
     def reset(self) -> None:
         self._state = None
         self.belief = None
         self.elsewhere = 0.0
+        self._recent.clear()
 
     def _predict(self) -> tuple[np.ndarray, float]:
         """Prior of the next frame: (N, S) belief over the map's states given that the camera is in
@@ -537,12 +602,16 @@ class SequenceLocalizer:
         prior, e = self._predict()
         # appearance places the camera within the map (if it is in the map); a noisy or flat frame
         # (night, fog) says less, so its likelihood is flattened instead of pushing belief anywhere
-        if len(ex):
-            score[ex] = -np.inf
         # (contrast lost and pixels clipped count too: an over-exposed frame keeps its noise level and
         # contrast but loses the texture of its bright half; docs/localization.md has the figures)
         reliability = 1.0 / (1.0 + ev1["low_snr"] + ev1["contrast_loss"] + ev1["clipping"])
-        lik = loc.likelihood(score, cfg.beta * reliability)
+        # ... and the more degraded, the more each node is judged against its own recent scores
+        obs = self._recent.debias(score, 1.0 - reliability)
+        if len(ex):
+            score[ex] = -np.inf
+            obs = obs.copy()
+            obs[ex] = -np.inf
+        lik = loc.likelihood(obs, cfg.beta * reliability)
         post = prior * lik[:, None]
         total = post.sum()
         self._state = post / total if total > 0 and np.isfinite(total) else np.full_like(prior, 1.0 / prior.size)

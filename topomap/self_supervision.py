@@ -172,7 +172,7 @@ def calibrate_map(tmap: TopoMap, *, queries: int = 60, seed: int = 0, config: Lo
                  "contrast": float(np.median([q.contrast for q in qualities])),
                  "clipped": float(np.median([q.clipped for q in qualities]))}
     # evidence of image quality is relative to the map's keyframes: install the reference first
-    loc.calibration = Calibration(Calibrator(SINGLE_FEATURES, (0.0,) * len(SINGLE_FEATURES), 0.0), reference, {})
+    loc.quality_reference = reference
     single = single_samples(loc, chosen, rng)
     if len(single) < 20 or single.y.all() or not single.y.any():
         raise CalibrationError(f"{NOT_CALIBRATED}: its keyframes gave {len(single)} usable samples, "
