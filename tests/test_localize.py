@@ -381,6 +381,23 @@ def test_corridor_standing_still(corridor):
         assert len(set(nodes[STILL_SETTLE_FRAMES:])) == 1, (i, nodes)
 
 
+def test_bow_max_postings_reaches_the_bag_of_words(route, second_pass):
+    """The localizer scores with the index's postings budget: a budget above what any query reads
+    changes nothing, a budget of one posting leaves a query one posting list (its rarest word's)."""
+    q = second_pass[len(XS) // 2]
+    exact = Localizer(route.map, LocalizeConfig(descriptor="bow"))
+    roomy = Localizer(route.map, LocalizeConfig(descriptor="bow", bow_max_postings=10**9))
+    tight = Localizer(route.map, LocalizeConfig(descriptor="bow", bow_max_postings=1))
+    np.testing.assert_array_equal(roomy.appearance(q), exact.appearance(q))
+    index = route.map.index
+    kept, _ = index.query_terms(q.features, q.words, 1)
+    assert (np.diff(index.indptr)[kept] > 0).sum() == 1  # words in no node cost nothing and stay
+    one_word = index.scores(q.features, q.words, 1)[exact._bow_rows]
+    a = tight.appearance(q)
+    assert not np.allclose(a, exact.appearance(q))
+    assert np.array_equal(np.argsort(-a, kind="stable"), np.argsort(-one_word.astype(np.float64), kind="stable"))
+
+
 def test_fused_on_a_big_map_compares_thumbnails_of_the_bow_best_only(route, second_pass):
     full = route.loc
     few = Localizer(route.map, LocalizeConfig(thumbnail_candidates=5))
