@@ -7,7 +7,16 @@ import json
 
 import pytest
 
-from topomap.config import BUILD_PRESETS, BuildConfig, FeatureConfig, MatchConfig, build_preset, from_dict, to_dict
+from topomap.config import (
+    BUILD_PRESETS,
+    BuildConfig,
+    FeatureConfig,
+    LocalizeConfig,
+    MatchConfig,
+    build_preset,
+    from_dict,
+    to_dict,
+)
 from topomap.errors import ConfigError
 from topomap.features import DETECTORS
 
@@ -59,6 +68,8 @@ def test_from_dict_defaults_and_rejects():
         (lambda: BuildConfig(keyframe_min_ratio=1.0), "keyframe_min_ratio"),
         (lambda: BuildConfig(loop_shortlist_k=0), "loop_shortlist_k"),
         (lambda: BuildConfig(vocabulary_words=4), "vocabulary_words"),
+        (lambda: LocalizeConfig(bow_max_postings=0), "bow_max_postings"),
+        (lambda: LocalizeConfig(bow_max_postings=1.5), "bow_max_postings"),
     ],
 )
 def test_validation(make, match):

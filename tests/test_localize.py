@@ -447,6 +447,23 @@ def test_recent_scores_keep_only_the_last_frames():
     assert len(recent._past) == 1 and _recent(0).debias(frames[0], 1.0) is frames[0]
 
 
+def test_bow_max_postings_reaches_the_bag_of_words(route, second_pass):
+    """The localizer scores with the index's postings budget: a budget above what any query reads
+    changes nothing, a budget of one posting leaves a query one posting list (its rarest word's)."""
+    q = second_pass[len(XS) // 2]
+    exact = Localizer(route.map, LocalizeConfig(descriptor="bow"))
+    roomy = Localizer(route.map, LocalizeConfig(descriptor="bow", bow_max_postings=10**9))
+    tight = Localizer(route.map, LocalizeConfig(descriptor="bow", bow_max_postings=1))
+    np.testing.assert_array_equal(roomy.appearance(q), exact.appearance(q))
+    index = route.map.index
+    kept, _ = index.query_terms(q.features, q.words, 1)
+    assert (np.diff(index.indptr)[kept] > 0).sum() == 1  # words in no node cost nothing and stay
+    one_word = index.scores(q.features, q.words, 1)[exact._bow_rows]
+    a = tight.appearance(q)
+    assert not np.allclose(a, exact.appearance(q))
+    assert np.array_equal(np.argsort(-a, kind="stable"), np.argsort(-one_word.astype(np.float64), kind="stable"))
+
+
 def test_fused_on_a_big_map_compares_thumbnails_of_the_bow_best_only(route, second_pass):
     full = route.loc
     few = Localizer(route.map, LocalizeConfig(thumbnail_candidates=5))

@@ -1,5 +1,6 @@
 """topomap.retrieval: vocabulary tree (binary and float), TF-IDF inverted file against a brute-force
-cosine, stop words, add(), array round trips and damaged arrays, the whole-image descriptor."""
+cosine, stop words, the per-query postings budget against exact scoring, top-k ties, add(), array
+round trips and damaged arrays, the whole-image descriptor."""
 
 from __future__ import annotations
 
@@ -7,8 +8,8 @@ import numpy as np
 import pytest
 from map_synth import scene, window
 
-from topomap.config import FeatureConfig
-from topomap.errors import MapFormatError
+from topomap.config import FeatureConfig, LocalizeConfig
+from topomap.errors import ConfigError, MapFormatError
 from topomap.features import Features, extract
 from topomap.retrieval import BowIndex, Vocabulary, sad, thumbnail_descriptor, vocabulary_size
 
@@ -69,6 +70,36 @@ def tfidf_cosine(index: BowIndex, words_of: dict[int, np.ndarray], query_words: 
     q /= max(np.linalg.norm(q), 1e-300)
     q[index.stop_words] = 0.0
     return docs @ q
+
+
+def tfidf_cosine_rows(index: BowIndex, words_of: dict[int, np.ndarray], query_words: np.ndarray,
+                      keep: np.ndarray | None = None) -> np.ndarray:
+    """:func:`tfidf_cosine` in the index's row order (``words_of`` in any id order), the query
+    reduced to the words ``keep`` (after normalisation) when given."""
+    ordered = {r: words_of[int(i)] for r, i in enumerate(index.node_ids)}
+    q = np.asarray(query_words)
+    if keep is None:
+        return tfidf_cosine(index, ordered, q)
+    full = tfidf_cosine_terms(index, ordered, q)
+    docs, weights = full
+    weights[~np.isin(np.arange(len(weights)), keep)] = 0.0
+    return docs @ weights
+
+
+def tfidf_cosine_terms(index: BowIndex, words_of: dict[int, np.ndarray], query_words: np.ndarray):
+    """The dense unit TF-IDF node vectors (rows) and the query's unit weights, stop words zeroed."""
+    ids = sorted(words_of)
+    n, v = len(ids), index.vocabulary.size
+    tf = np.zeros((n, v))
+    for r, i in enumerate(ids):
+        np.add.at(tf[r], words_of[i], 1.0)
+    idf = np.log((n + 1.0) / ((tf > 0).sum(axis=0) + 1.0))
+    docs = tf * idf
+    docs /= np.maximum(np.linalg.norm(docs, axis=1, keepdims=True), 1e-300)
+    q = np.bincount(query_words, minlength=v) * idf
+    q /= max(np.linalg.norm(q), 1e-300)
+    q[index.stop_words] = 0.0
+    return docs, q
 
 
 # ----------------------------------------------------------------------------- vocabulary
@@ -194,6 +225,112 @@ def test_stop_words_only_on_big_maps():
     assert (s_big[only_common(big_words)] == 0).all()  # ... and is ignored on a big one
     holds_5 = np.array([5 in big_words[i] for i in range(len(big))])
     assert (s_big[holds_5] > 0).all()
+
+
+def random_index(n: int, v: int = 2000, per_node: int = 60, seed: int = 0) -> tuple[BowIndex, dict[int, np.ndarray]]:
+    """An index of ``n`` nodes over a flat ``v``-word vocabulary, words drawn from a skewed (Zipf-like)
+    distribution as real ones are, so posting-list lengths spread over two orders of magnitude."""
+    rng = np.random.default_rng(seed)
+    voc = Vocabulary((np.zeros((v, 32), np.uint8),), (), "orb")
+    p = 1.0 / np.arange(1, v + 1) ** 0.8
+    words = {i: rng.choice(v, per_node, p=p / p.sum()) for i in range(n)}
+    ids = rng.permutation(np.arange(100, 100 + 3 * n, 3))  # node ids not in row order
+    words = {int(ids[r]): w for r, w in enumerate(words.values())}
+    return BowIndex.from_word_lists(voc, list(words), list(words.values())), words
+
+
+def query_of(words: np.ndarray) -> Features:
+    """A query whose features' words are given (passed as ``words=``): only its length matters."""
+    return Features(np.zeros((len(words), 2), np.float32), np.zeros((len(words), 32), np.uint8), "orb", (10, 10))
+
+
+def test_max_postings_reads_the_rarest_words():
+    """A bounded query reads its rarest words while their lists hold at most max_postings, and
+    scores them as the exact cosine restricted to those words would."""
+    index, words_of = random_index(600)
+    rng = np.random.default_rng(1)
+    qw = np.r_[words_of[index.node_ids[7]], rng.integers(0, 2000, 40)]
+    f = query_of(qw)
+    all_w, all_q = index.query_terms(f, qw)
+    lengths = np.diff(index.indptr)
+    total = int(lengths[all_w].sum())
+    for budget in (None, total, 10 * total):  # no cut
+        assert np.array_equal(index.query_terms(f, qw, budget)[0], all_w)
+        np.testing.assert_array_equal(index.scores(f, qw, budget), index.scores(f, qw))
+    np.testing.assert_allclose(index.scores(f, qw), tfidf_cosine_rows(index, words_of, qw), atol=1e-5)
+    assert (lengths[index.query_terms(f, qw, 1)[0]] > 0).sum() == 1  # a list is read, however small the budget
+    for budget in (total - 1, total // 2, total // 10, 1):
+        kept, q = index.query_terms(f, qw, budget)
+        assert np.all(np.diff(kept) > 0) and np.isin(kept, all_w).all()
+        np.testing.assert_array_equal(q, all_q[np.isin(all_w, kept)])  # weights of the whole query
+        dropped = np.setdiff1d(all_w, kept)
+        assert len(kept) >= 1 and len(dropped) >= 1 and lengths[kept].max() <= lengths[dropped].min()  # the rarest
+        assert lengths[kept].sum() <= budget or (lengths[kept] > 0).sum() == 1  # or the rarest list alone
+        assert lengths[kept].sum() + lengths[dropped].min() > budget  # the next rarest would not fit
+        want = tfidf_cosine_rows(index, words_of, qw, keep=kept)
+        np.testing.assert_allclose(index.scores(f, qw, budget), want, atol=1e-5)
+        assert index.shortlist(f, 5, words=qw, max_postings=budget) == index.top_k(index.scores(f, qw, budget), 5)
+
+
+def test_bounded_top_k_agrees_with_exact_where_the_bound_says_it_must():
+    """The words a bounded query leaves out add at most R = sum of (query weight x the largest
+    weight in their posting list) to any node's score; a node ahead of the (k+1)-th bounded score by
+    more than R is in the exact top k."""
+    index, words_of = random_index(BowIndex.STOP_MIN_NODES + 500, seed=2)
+    lengths = np.diff(index.indptr)
+    k = 10
+    certified_total = 0
+    for r in range(0, 60, 3):
+        qw = words_of[int(index.node_ids[r])]  # a node's own words: it stands out
+        f = query_of(qw)
+        exact = index.scores(f, qw)
+        all_w, all_q = index.query_terms(f, qw)
+        total = int(lengths[all_w].sum())
+        for share in (0.9, 0.6, 0.3):
+            budget = int(share * total)
+            bounded = index.scores(f, qw, budget)
+            kept, _ = index.query_terms(f, qw, budget)
+            gap = np.isin(all_w, kept, invert=True)
+            top_w = np.array([index._weights[index.indptr[w]:index.indptr[w + 1]].max() for w in all_w[gap]] or [0.0])
+            bound = float((all_q[gap] * top_w).sum())
+            diff = exact - bounded
+            assert diff.min() >= -1e-6 and diff.max() <= bound + 1e-6
+            ranked = index.top_k(bounded, k + 1)
+            certified = [n for n, s in ranked[:k] if s > ranked[k][1] + bound]
+            assert set(certified) <= {n for n, _ in index.top_k(exact, k)}
+            certified_total += len(certified)
+    assert certified_total > 0  # the bound did certify answers, so the check above bit
+
+
+@pytest.mark.parametrize("bad", [0, -5, 2.5, True, "100"])
+def test_max_postings_is_validated(bad):
+    index, words_of = random_index(50, seed=3)
+    qw = words_of[int(index.node_ids[0])]
+    with pytest.raises(ValueError, match="max_postings"):
+        index.scores(query_of(qw), qw, bad)
+    with pytest.raises(ValueError, match="max_postings"):
+        index.scores(Features.empty("orb", (10, 10)), None, bad)
+    with pytest.raises(ConfigError, match="bow_max_postings"):
+        LocalizeConfig(bow_max_postings=bad)
+
+
+def test_top_k_is_the_stable_full_sort():
+    """top_k equals sorting every row by (score descending, node id), on big arrays with many ties
+    at the cut, excluded nodes and -inf rows."""
+    index, _ = random_index(3000, seed=4)
+    rng = np.random.default_rng(5)
+    for trial in range(20):
+        scores = rng.integers(0, 6, len(index)).astype(np.float32) / 5  # heavy ties
+        if trial % 3 == 0:
+            scores[rng.random(len(index)) < 0.99] = -np.inf  # fewer finite rows than k at times
+        exclude = set(rng.choice(index.node_ids, 50).tolist()) if trial % 2 else None
+        s = scores.copy()
+        if exclude:
+            s[[index.row_of(n) for n in exclude]] = -np.inf
+        order = np.lexsort((index.node_ids, -s))
+        for k in (1, 10, 40):
+            want = [(int(index.node_ids[r]), float(s[r])) for r in order[:k] if np.isfinite(s[r])]
+            assert index.top_k(scores, k, exclude) == want
 
 
 def test_add_equals_building_at_once(orb_feats, orb_vocab):

@@ -202,6 +202,9 @@ class LocalizeConfig:
     # fused descriptor on maps with more nodes than this: thumbnails are compared only for the
     # bag-of-words' best thumbnail_candidates nodes (all 100k thumbnails: ~35 ms per query; 2000: ~1 ms)
     thumbnail_candidates: int = 2000
+    # At most this many postings read per query, its rarest words first (None: all): bounds the work on
+    # huge maps, but costs recall where common words carry the match (docs/build.md, "Query at 1M").
+    bow_max_postings: int | None = None
     # Verification matches a query descriptor only against the node's descriptors under the same
     # vocabulary-tree node (at the deepest level with <= match_groups nodes), ORB-SLAM's guided search:
     # ~0.3 ms instead of ~1.8 ms per candidate. Binary matches must also lie within guided_max_hamming
@@ -255,6 +258,9 @@ class LocalizeConfig:
             raise ConfigError("shortlist_k must be >= 0")
         if self.match_groups < 1 or self.guided_max_hamming < 0 or self.verify_max_iters < 1 or self.thumbnail_candidates < 1:
             raise ConfigError("match_groups, verify_max_iters and thumbnail_candidates must be >= 1, guided_max_hamming >= 0")
+        budget = self.bow_max_postings
+        if budget is not None and (not isinstance(budget, int) or isinstance(budget, bool) or budget < 1):
+            raise ConfigError(f"bow_max_postings={self.bow_max_postings!r} must be a positive integer or None")
         if self.verify_ransac_method not in RANSAC_METHODS:
             raise unknown_choice("verify_ransac_method", self.verify_ransac_method, RANSAC_METHODS)
         if not 0.0 <= self.min_confidence <= 1.0:

@@ -282,7 +282,8 @@ class Localizer:
         the bag of words and HOG are computed once for both (the sequence filter needs both)."""
         score = np.zeros(len(self.node_ids))
         if self.use_bow:
-            score += _robust_z(self.map.index.scores(q.features, self._query_words(q))[self._bow_rows].astype(np.float64))
+            bow = self.map.index.scores(q.features, self._query_words(q), self.config.bow_max_postings)
+            score += _robust_z(bow[self._bow_rows].astype(np.float64))
         # fused on a big map: whole-image descriptors only for the bag of words' best nodes (a
         # thumbnail distance to all of 100k nodes costs ~35 ms); the others get the lowest score of those
         rows = None

@@ -10,6 +10,9 @@
   skips *stop words* — words present in a large fraction of a big map's nodes, which carry almost no
   information and dominate the cost (Sivic & Zisserman 2003). The vocabulary grows with the map
   (:func:`vocabulary_size`), which keeps posting lists short: query time grows far slower than the map.
+  Past that, a query may be given a postings budget (``max_postings``): it then reads its rarest
+  words' lists first and leaves out the commonest words that would overrun it, so a query costs the
+  same on a map of a million nodes as on one of a hundred thousand.
 * :func:`thumbnail_descriptor` — a patch-normalised thumbnail (SeqSLAM), the whole-image descriptor
   for images too small or too blurred for keypoints.
 
@@ -242,6 +245,12 @@ class Vocabulary:
         return cls(tuple(centres), tuple(children), det.name)
 
 
+def _check_budget(max_postings: int | None) -> None:
+    if max_postings is not None and (isinstance(max_postings, bool) or not isinstance(max_postings, (int, np.integer))
+                                     or max_postings < 1):
+        raise ValueError(f"max_postings={max_postings!r} must be a positive integer or None")
+
+
 class BowIndex:
     """TF-IDF inverted file over map nodes.
 
@@ -411,15 +420,38 @@ class BowIndex:
         norm = float(np.sqrt((q * q).sum()))
         return words, (q / norm if norm > 0 else q)
 
-    def scores(self, f: Features, words: np.ndarray | None = None) -> np.ndarray:
-        """Cosine similarity of the query to every indexed node: (N,) float32 in row order.
-        ``words``: the query features' words (``vocabulary.quantize``) if already computed."""
-        n = len(self.node_ids)
-        if n == 0 or len(f) == 0:
-            return np.zeros(n, np.float32)
+    def query_terms(self, f: Features, words: np.ndarray | None = None,
+                    max_postings: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The query's (word ids, unit TF-IDF weights) that :meth:`scores` reads: its stop words
+        dropped and, with ``max_postings``, only its rarest words (shortest posting lists first, ties
+        by word id) while their lists hold at most that many postings together (at least one list):
+        the work per query stays bounded however large the map. Weights stay those of the whole
+        query (what is dropped is not renormalised away, as for the stop words)."""
+        _check_budget(max_postings)
         words, q = self.query_words(f, words)
         keep = ~self.stop_words[words]
         words, q = words[keep], q[keep]
+        if max_postings is not None and len(words) > 1:
+            lengths = self.indptr[words + 1] - self.indptr[words]
+            if int(lengths.sum()) > max_postings:
+                order = np.argsort(lengths, kind="stable")  # words are unique and ascending: ties by id
+                read = np.cumsum(lengths[order])
+                # at least the rarest word any node holds (words no node holds cost nothing)
+                n_keep = max(int(np.searchsorted(read, max_postings, side="right")),
+                             int(np.searchsorted(read, 0, side="right")) + 1)
+                chosen = np.sort(order[:n_keep])
+                words, q = words[chosen], q[chosen]
+        return words, q
+
+    def scores(self, f: Features, words: np.ndarray | None = None, max_postings: int | None = None) -> np.ndarray:
+        """Cosine similarity of the query to every indexed node: (N,) float32 in row order, over the
+        words :meth:`query_terms` keeps (all but the stop words unless ``max_postings`` cuts).
+        ``words``: the query features' words (``vocabulary.quantize``) if already computed."""
+        n = len(self.node_ids)
+        _check_budget(max_postings)
+        if n == 0 or len(f) == 0:
+            return np.zeros(n, np.float32)
+        words, q = self.query_terms(f, words, max_postings)
         if len(words) == 0:
             return np.zeros(n, np.float32)
         # the touched posting lists as a sparse (words x nodes) block, transposed, times the query's
@@ -427,22 +459,37 @@ class BowIndex:
         # numpy concatenation and a bincount took 7 ms)
         return np.asarray(self._matrix[words].T @ q, dtype=np.float32).ravel()
 
-    def shortlist(self, f: Features, k: int, exclude: set[int] | None = None) -> list[tuple[int, float]]:
+    def shortlist(self, f: Features, k: int, exclude: set[int] | None = None, words: np.ndarray | None = None,
+                  max_postings: int | None = None) -> list[tuple[int, float]]:
         """The ``k`` most similar nodes as ``(node_id, score)``, best first (ties by node id)."""
-        return self.top_k(self.scores(f), k, exclude)
+        return self.top_k(self.scores(f, words, max_postings), k, exclude)
 
     def top_k(self, scores: np.ndarray, k: int, exclude: set[int] | None = None) -> list[tuple[int, float]]:
-        """Best ``k`` of a row-ordered score array as ``(node_id, score)``; ``exclude`` holds node ids."""
+        """Best ``k`` of a row-ordered score array as ``(node_id, score)``, ties by node id;
+        ``exclude`` holds node ids (never listed, nor are rows scoring -inf)."""
         if exclude:
             scores = scores.copy()
             rows = [self._row_of[int(n)] for n in exclude if int(n) in self._row_of]
             scores[rows] = -np.inf
-        k = min(k, len(scores))
+        n = len(scores)
+        k = min(k, n)
         if k <= 0:
             return []
-        part = np.argpartition(-scores, k - 1)[:k]
-        order = part[np.lexsort((self.node_ids[part], -scores[part]))]
-        return [(int(self.node_ids[r]), float(scores[r])) for r in order if np.isfinite(scores[r])]
+        # the k-th largest value, then every row above it and, of the rows equal to it, those of the
+        # smallest node ids: a partition of the scores (no negated copy), ties decided by node id
+        kth = np.partition(scores, n - k)[n - k]
+        if kth == -np.inf:  # fewer than k rows left: all of them
+            above = np.flatnonzero(scores > -np.inf)
+            tied = np.zeros(0, np.intp)
+        else:
+            above = np.flatnonzero(scores > kth)
+            tied = np.flatnonzero(scores == kth)
+            need = k - len(above)  # >= 1: fewer than k rows lie above the k-th value
+            if len(tied) > need:
+                tied = tied[np.argpartition(self.node_ids[tied], need - 1)[:need]]
+        part = np.concatenate([above, tied])
+        order = part[np.lexsort((self.node_ids[part], -scores[part]))][:k]
+        return [(int(self.node_ids[r]), float(scores[r])) for r in order]
 
     def row_of(self, node_id: int) -> int:
         return self._row_of[int(node_id)]
