@@ -331,7 +331,7 @@ def corridor(tmp: Path, with_480: bool):
         rows.append(score_ranked(name, "node", [to_nodes(r, node_of_ref) for r in ranked], conf, good_nodes, ms))
     print_table("corridor (topomap: node level; baselines: frame level, and node level for comparison)", rows,
                 {"exh": "exhaustive ORB native", "exh-p15": "exhaustive ORB native p15", "thumb": "thumbnail SAD 32x24"})
-    return m, q_names, q_imgs, truth
+    return m, q_names, q_imgs, truth, lambda imgs: _top1(seqslam(ref_imgs, imgs, (32, 24))[0], good_frames)
 
 
 def nordland(tmp: Path):
@@ -358,14 +358,20 @@ def nordland(tmp: Path):
         rows.append(score_ranked(name, "frame", ranked, conf, good_frames, ms))
     print_table("nordland summer -> winter (one node per frame: node level = frame level)", rows,
                 {"thumb": "thumbnail SAD 32x16", "seqslam": "SeqSLAM 32x16"})
-    return m, q_names, q_imgs, truth
+    return m, q_names, q_imgs, truth, lambda imgs: _top1(seqslam(ref_imgs, imgs, size)[0], good_frames)
 
 
-def appearance_change(title: str, m, names, images, truth) -> None:
-    """The photometric presets applied to the queries (seeded per query): topomap in both modes."""
+def _top1(ranked: list[list[int]], good: list[set[int]]) -> float:
+    """Fraction of queries whose first-ranked reference frame is a right one."""
+    return float(np.mean([bool(r) and r[0] in g for r, g in zip(ranked, good)]))
+
+
+def appearance_change(title: str, m, names, images, truth, seqslam_top1) -> None:
+    """The photometric presets applied to the queries (seeded per query): topomap in both modes, and
+    the SeqSLAM baseline's top-1 (frame level) on the same changed queries beside the sequence row."""
     print(f"\nappearance change, {title}: each preset of topomap.photometric applied to the queries")
     head = (f"{'condition':<14}{'mode':<10}{'top-1':>7}{'decl':>7}{'decl&ok':>8}{'prec':>7}{'recall/none':>12}"
-            f"{'ECE':>7}{'ms/query':>10}")
+            f"{'ECE':>7}{'ms/query':>10}{'SeqSLAM top-1':>15}")
     print(head)
     print("-" * len(head))
     base: dict[bool, float] = {}
@@ -375,8 +381,9 @@ def appearance_change(title: str, m, names, images, truth) -> None:
             res, ms, _, _ = run_topomap(m, names, changed, truth, seq)
             base.setdefault(seq, res.declared_right)
             rel = res.declared_right / base[seq] if base[seq] > 0 else float("nan")
+            other = f"{seqslam_top1(changed):15.3f}" if seq else ""
             print(f"{name:<14}{'sequence' if seq else 'single':<10}{res.recall_at[1]:7.3f}{res.declared:7.3f}"
-                  f"{res.declared_right:8.3f}{res.declared_precision:7.3f}{rel:12.2f}{res.ece:7.3f}{ms:10.1f}")
+                  f"{res.declared_right:8.3f}{res.declared_precision:7.3f}{rel:12.2f}{res.ece:7.3f}{ms:10.1f}{other}")
     print("  prec = precision of the declared answers (1.000 when none is declared); recall/none = declared&ok "
           "relative to the unchanged queries")
 
@@ -414,10 +421,10 @@ def main() -> None:
             data["corridor"] = corridor(Path(tmp), not args.no_exhaustive_480)
         if args.dataset in ("nordland", "all"):
             data["nordland"] = nordland(Path(tmp))
-        for name, (m, names, images, truth) in data.items():
+        for name, (m, names, images, truth, seqslam_top1) in data.items():
             maps[name] = m
             if not args.no_conditions:
-                appearance_change(name, m, names, images, truth)
+                appearance_change(name, m, names, images, truth, seqslam_top1)
         foreign(maps)
 
 
