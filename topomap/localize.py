@@ -25,7 +25,8 @@ edge (loop closures, links between sequences) and a ``jump_probability`` telepor
 filter recovers after a kidnapping. The speed states are what SeqSLAM's trajectory search gets
 right: a camera moving through the map keeps moving the same way, and a camera standing still keeps
 a stable answer. The observation model is the softmax of the appearance scores, flattened on noisy,
-flat or clipped frames; a virtual "elsewhere" state, updated by geometric verification (keypoint
+flat or clipped frames, whose scores are also judged against each node's own recent scores
+(:class:`RecentScores`: a node matching every dark frame tells nothing); a virtual "elsewhere" state, updated by geometric verification (keypoint
 maps) or by the filter's predictive likelihood (appearance-only maps), says "not in this map".
 """
 
