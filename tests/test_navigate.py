@@ -417,23 +417,3 @@ def test_a_start_the_geometry_refuses_is_not_accepted(taught):
     for kwargs in ({"localizer_node": wrong}, {"switch_min_inliers": 100_000}):
         ev, _ = _start(taught, **kwargs)
         assert ev.kind is EventKind.FAILED and "could not localize" in ev.message, (kwargs, ev.message)
-
-
-def test_near_nodes_are_ranked_by_their_geometry(taught):
-    """The servo's geometry (scaled distance) puts the robot nearer the node it stands behind than a
-    node further along the corridor, and nearer when it stands closer."""
-    m, world, poses, _ = taught
-    ids = sorted(m.nodes)
-    here = ids[50]
-    x, z, th = goal_pose(m, poses, here)
-    dist = {}
-    for back in (0.1, 0.6):  # behind the node along its heading
-        with Simulator(world, vehicle="omni", start_pose=(x - back * math.cos(th), z - back * math.sin(th), th)) as sim:
-            nav = Navigator(m, sim.robot, "omni")
-            _, q = nav._look(localizing=True)
-            d_here, inliers = nav._scaled_distance(q, here)
-            d_ahead, _ = nav._scaled_distance(q, ids[54])
-        assert inliers >= nav.config.switch_min_inliers and d_here < d_ahead, (back, d_here, d_ahead)
-        dist[back] = d_here
-    assert dist[0.1] < dist[0.6]
-    assert dist[0.1] <= nav._spacing(here)  # taken at once: closer than its nearest neighbour

@@ -612,11 +612,6 @@ class NavigateConfig:
     # Re-localizing after a loss prefers nodes within this many hops of that node: a verified
     # answer there beats a look-alike elsewhere (measured: re-localizations 11-18 m off).
     recover_local_hops: int = 3
-    # Of those, the one the servo's geometry puts nearest (scaled distance, in median depths) is taken
-    # at once when within this multiple of its distance to its nearest neighbouring keyframe (it is
-    # in that node's stretch), else the nearest seen in a full turn. Hop counts mislead on long
-    # views (keyframes metres apart); metric scales are unreliable metres away from a keyframe.
-    recover_near_spacing: float = 1.0
     # An answer farther away is taken only if its calibrated confidence reaches this and a second
     # look (after a scan step) answers the same place (within one hop).
     recover_far_confidence: float = 0.9
@@ -648,8 +643,8 @@ class NavigateConfig:
             raise ConfigError("navigate give_up_budget_fraction must lie in [0, 1), recover_far_confidence in [0, 1]")
         if not 0 <= self.start_verified_confidence <= 1 or not 0 <= self.arrive_floor_min_fraction <= 1:
             raise ConfigError("navigate start_verified_confidence and arrive_floor_min_fraction must lie in [0, 1]")
-        if not self.arrive_floor_max_m > 0 or not self.start_confirm_heading_deg > 0 or not self.recover_near_spacing > 0:
-            raise ConfigError("navigate arrive_floor_max_m, start_confirm_heading_deg and recover_near_spacing must be positive")
+        if not self.arrive_floor_max_m > 0 or not self.start_confirm_heading_deg > 0:
+            raise ConfigError("navigate arrive_floor_max_m and start_confirm_heading_deg must be positive")
         if self.recover_backoff_s < 0 or self.recover_local_hops < 0:
             raise ConfigError("navigate recover_backoff_s and recover_local_hops must be >= 0")
 

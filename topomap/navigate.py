@@ -48,12 +48,10 @@ test, the navigator stops and
    drives the inverse of the commands sent since then (at most ``recover_backoff_s``, disturbance
    compensation kept) until that node verifies again — it moves before it looks again;
 2. re-localizes, turning in place to search: a node within ``recover_local_hops`` of that node that
-   verifies is preferred, the one the servo's geometry puts nearest (scaled distance), taken at once
-   when closer to it than its nearest neighbouring keyframe is; an answer farther away is taken only
-   at ``recover_far_confidence`` (when calibrated) and confirmed by a second look (a single frame of
-   a look-alike place is not enough); after a full turn without either, it takes the nearest near
-   node seen, else keeps the last node that verified well (after a look-alike fooled the goal's
-   settle test there is none: it re-localizes globally);
+   verifies is preferred; an answer farther away is taken only at ``recover_far_confidence`` (when
+   calibrated) and confirmed by a second look (a single frame of a look-alike place is not
+   enough); after a full turn without either, it keeps the last node that verified well (after a
+   look-alike fooled the goal's settle test there is none: it re-localizes globally);
 3. penalises the edge it was following and re-plans.
 
 It does not give up while more than ``give_up_budget_fraction`` of the time budget is left and the
@@ -400,28 +398,6 @@ class Navigator:
         self._here = loc.node
         yield NavEvent(EventKind.LOCALIZED, self._time, f"at node {loc.node} ({why})", subgoal=loc.node, localization=loc)
 
-    def _scaled_distance(self, q: Query, node: int) -> tuple[float, int]:
-        """How far the servo's geometry puts the image of ``q`` from ``node``'s keyframe, in the
-        keyframe's median depths (0 when the images resolve no translation; inf without a heading
-        from ``switch_min_inliers`` inliers), and the pose's inliers. Scale-free: a node's metric scale
-        (from its neighbours' floor points) and one image's floor are unreliable metres away."""
-        v = self._match(q, node)
-        if not v.verified:
-            return math.inf, v.inliers
-        use = v.inlier_matches
-        pose = relative_pose(q.features.keypoints[use.ia], self.map.nodes[node].features.keypoints[use.ib],
-                             self.camera, self.servo.config.geometry, goal_camera=self.map.camera)
-        if not pose.has_heading or pose.inliers < self.config.switch_min_inliers:
-            return math.inf, pose.inliers
-        return (0.0 if pose.status is PoseStatus.PURE_ROTATION else pose.rho_s), pose.inliers
-
-    def _spacing(self, node: int) -> float:
-        """Scaled distance from ``node``'s keyframe to its nearest graph neighbour's (its median depths;
-        NaN when no neighbour's pair resolves one)."""
-        rhos = [p.rho_depth_s for nb in self.map.neighbours(node)
-                if (p := self.pairs.motion(nb, node)) is not None and p.rho_depth_s is not None]
-        return min(rhos) if rhos else math.nan
-
     def _frame_heading(self, q: Query, before: Query) -> float:
         """Heading of the image of ``q`` relative to the image of ``before`` [rad]; NaN without a pose."""
         v = verify(q.features, before.features, self.map.config.match)
@@ -643,26 +619,17 @@ class Navigator:
         # the most inliers may be one looking down the same corridor from metres away)
         away = [n for n in self.map.nodes if n not in near]
         turned, far, found = 0.0, None, None
-        best_local: tuple[float, int, int] | None = None  # (distance, -inliers, node) of the best near node
+        best_local: tuple[int, int] | None = None  # (inliers, node) of the best weakly verified near node
         while found is None:
             _, q = self._look(localizing=True)
             if near:
-                # the near nodes the localizer verified, ranked by how far the servo's geometry puts
-                # them: hops say little where keyframes on long views are metres apart
                 local = self.localizer.localize_query(q, exclude=away)
-                shortlist = [c.node for c in local.candidates if c.inliers >= min_inliers]
-                if local.verification is not None and local.verification.inliers >= min_inliers and local.node not in shortlist:
-                    shortlist.insert(0, local.node)
-                for node in shortlist:
-                    dist, inliers = self._scaled_distance(q, node)
-                    if best_local is None or (dist, -inliers) < best_local[:2]:
-                        best_local = (dist, -inliers, node)
-                # taken at once when closer to it than its nearest neighbouring keyframe is
-                if best_local is not None and best_local[0] <= cfg.recover_near_spacing * self._spacing(best_local[2]):
-                    dist, inliers, node = best_local
-                    found = (node, f"verified near node {self._last_good} ({-inliers} inliers, {dist:.2f} median "
-                                   f"depths by its geometry)")
+                inliers = local.verification.inliers if local.verification is not None else 0
+                if inliers >= cfg.switch_min_inliers:
+                    found = (local.node, f"verified near node {self._last_good} ({inliers} inliers)")
                     break
+                if inliers >= min_inliers and (best_local is None or inliers > best_local[0]):
+                    best_local = (inliers, local.node)
             loc = self.localizer.localize_query(q)
             if loc.localized and loc.node in near:
                 found = (loc.node, f"confidence {loc.confidence:.2f}")
@@ -681,8 +648,7 @@ class Navigator:
             self._count("searched", math.degrees(turned))
         if found is None:
             if best_local is not None:
-                dist, inliers, node = best_local
-                found = (node, f"best near node {self._last_good} ({-inliers} inliers, {dist:.2f} median depths by its geometry)")
+                found = (best_local[1], f"best near node {self._last_good} ({best_local[0]} inliers)")
             elif self._last_good is not None or self._here is not None:
                 keep = self._last_good if self._last_good is not None else self._here
                 found = (keep, "nothing verified in a full turn: kept the last good node")
