@@ -216,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
         for row in pool.map(run_one, jobs):
             rows.append(row)
             print(f"world {row['world']} ep {row['episode']:>2} {row['vehicle']:<8} {row['method']:<13} "
-                  f"{row['start_node']:>3} -> {row['goal']:<3} {row['status']:<8} "
+                  f"{row['start_node'] if row['start_node'] is not None else '?':>3} -> {row['goal']:<3} {row['status']:<8} "
                   f"{'ok  ' if row['success'] else 'FAIL'} {row['final_position_error_m']:.3f} m "
                   f"{row['final_heading_error_deg']:5.1f} deg  {row['wall_s']:.0f} s", flush=True)
     wall = time.perf_counter() - t0

@@ -56,8 +56,6 @@ def main(argv: list[str] | None = None) -> int:
     conditions = None
     if args.run is not None:
         ep, map_path, conditions, args.disturbance, args.budget_per_hop = _from_run(ap, args)
-    if args.conditions is not None:
-        conditions = args.conditions
     else:
         seeds = [int(s) for s in args.worlds.split(",")]
         if args.world not in seeds:
@@ -71,6 +69,8 @@ def main(argv: list[str] | None = None) -> int:
         if not 0 <= args.episode < len(drawn[k]):
             ap.error(f"world {args.world} has episodes 0..{len(drawn[k]) - 1}")
         ep, map_path = drawn[k][args.episode], maps[k]
+    if args.conditions is not None:
+        conditions = args.conditions
     m, world, poses, _, loc = bench._load(str(map_path))
     print(f"world {ep.world} ep {ep.index}: {ep.vehicle}, start node {ep.start_node} at {np.round(ep.start_pose, 3)}, "
           f"goal {ep.goal}, disturbance seed {ep.seed}" + (f", conditions {conditions}" if conditions else ""))

@@ -13,6 +13,7 @@ import json
 import math
 import shutil
 
+import numpy as np
 import pytest
 
 from topomap.groundtruth import read_poses
@@ -327,3 +328,92 @@ def test_a_subgoal_a_turn_away_is_not_lost_while_turning_toward_it():
     assert not nav._turning_toward(out(ServoStatus.LOST, 0.5 * half))  # it should be in view: lost
     assert not nav._turning_toward(out(ServoStatus.LOST, math.nan))  # no heading to turn to
     assert not nav._turning_toward(out(ServoStatus.APPROACHING, 1.5 * half))
+
+
+def test_arrival_needs_the_floor_to_agree():
+    """Converged with the image agreeing, the floor measuring the goal 0.3 m away refuses the arrival
+    ("far", with the scale it measured); a floor within the bound, or too few frames that measured
+    it, does not."""
+    import types
+
+    from topomap.config import NavigateConfig
+    from topomap.navigate import _Settle
+
+    cfg = NavigateConfig()
+    out = types.SimpleNamespace(converged=True, position_error_m=0.02, heading_error_rad=0.0)
+
+    def settle(floors):
+        s = _Settle(cfg)
+        return s, [s.update(k * cfg.control_period_s, out, True, lambda: True, f) for k, f in enumerate(floors)]
+
+    n = cfg.settle_steps
+    far, answers = settle([0.3] * n)
+    assert answers[:-1] == [None] * (n - 1) and answers[-1] == "far"
+    assert far.floor_scale(2.0) == pytest.approx(2.0 * 0.3 / 0.02)
+    assert settle([0.05] * n)[1][-1] == "precise"
+    assert settle([math.nan] * n)[1][-1] == "precise"  # no floor seen: nothing contradicts
+    few = [0.3 if k < int(cfg.arrive_floor_min_fraction * n) - 1 else math.nan for k in range(n)]
+    assert settle(few)[1][-1] == "precise"
+    # a unicycle's patient settle is bounded by settle_patience_max_m instead
+    slow = types.SimpleNamespace(converged=False, position_error_m=0.2, heading_error_rad=0.0)
+    for bound, expect in ((0.5 * cfg.settle_patience_max_m, "settled"), (1.5 * cfg.settle_patience_max_m, "far")):
+        s = _Settle(cfg)
+        t = np.arange(0.0, cfg.settle_patience_s + 1.0, cfg.control_period_s)
+        answers = [a for ti in t if (a := s.update(ti, slow, False, lambda: True, bound)) is not None]
+        assert answers and answers[0] == expect
+
+
+class _Unsure:
+    """A localizer whose answers never reach min_confidence (0.6 at most), optionally always naming ``node``."""
+
+    def __init__(self, loc, node=None):
+        self.loc, self.node = loc, node
+
+    def __getattr__(self, name):
+        return getattr(self.loc, name)
+
+    def localize_query(self, q, exclude=()):
+        from topomap.localize import LocalizationStatus
+
+        ans = self.loc.localize_query(q, exclude)
+        if self.node is not None:
+            ans = dataclasses.replace(ans, node=self.node)
+        return dataclasses.replace(ans, status=LocalizationStatus.UNKNOWN, confidence=min(ans.confidence, 0.6))
+
+
+def _start(taught, localizer_node=None, **config):
+    """The first localization (event and true distance to its node [m]) from a start beside a node
+    of the demo map, with answers below min_confidence."""
+    from topomap.config import NavigateConfig
+    from topomap.localize import Localizer
+
+    m, world, poses, _ = taught
+    ids = sorted(m.nodes)
+    here = ids[len(ids) // 3]
+    x, z, th = goal_pose(m, poses, here)
+    with Simulator(world, vehicle="unicycle", disturbance="bias", seed=5, start_pose=(x - 0.1 * math.sin(th), z + 0.1 * math.cos(th), th)) as sim:
+        nav = Navigator(m, sim.robot, "unicycle", config=NavigateConfig(**config),
+                        localizer=_Unsure(Localizer(m), localizer_node))
+        for ev in nav.run(ids[len(ids) // 3 + 5]):
+            if ev.kind in (EventKind.LOCALIZED, EventKind.FAILED):
+                gx, gz, _ = goal_pose(m, poses, ev.subgoal) if ev.subgoal is not None else (math.nan,) * 3
+                px, pz, _ = sim.ground_truth.pose()
+                return ev, math.hypot(gx - px, gz - pz)
+    raise AssertionError("no localization event")
+
+
+def test_an_unsure_start_is_taken_once_its_geometry_confirms_it(taught):
+    ev, off = _start(taught)
+    assert ev.kind is EventKind.LOCALIZED and "confirmed by its geometry" in ev.message, ev.message
+    assert off < 1.0
+
+
+def test_a_start_the_geometry_refuses_is_not_accepted(taught):
+    """Never confidently wrong: a node across the map (the localizer insisting on it) never verifies,
+    and without a geometry strong enough no unsure answer is taken either: could not localize."""
+    m, _, _, _ = taught
+    ids = sorted(m.nodes)
+    wrong = ids[(len(ids) // 3 + len(ids) // 2) % len(ids)]
+    for kwargs in ({"localizer_node": wrong}, {"switch_min_inliers": 100_000}):
+        ev, _ = _start(taught, **kwargs)
+        assert ev.kind is EventKind.FAILED and "could not localize" in ev.message, (kwargs, ev.message)

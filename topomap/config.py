@@ -596,6 +596,14 @@ class NavigateConfig:
     arrive_descriptor_fraction: float = 0.5
     settle_progress_m: float = 0.01
     settle_max_m: float = 0.08
+    # ... and, with the camera height known, the floor agrees: the distance the lowest matched points
+    # (taken as floor) measure, median over the settle window, is below this [m]; for a "settled"
+    # arrival below settle_patience_max_m. The goal's scale from its neighbours can be several times
+    # off on long views (their floor points mismatched), and with it the servo's metric estimate.
+    # Refused, the servo takes the scale the floor measures and keeps approaching. Checked only when
+    # at least arrive_floor_min_fraction of the window's frames measured the floor.
+    arrive_floor_max_m: float = 0.15
+    arrive_floor_min_fraction: float = 0.5
     # A unicycle can also stall further out (heading aligned, no progress, a lateral offset it cannot
     # remove without manoeuvres that lose the view). Aligned within settle_patience_max_m and
     # changing less than settle_patience_progress_m over settle_patience_s (medians of the window's
@@ -621,6 +629,14 @@ class NavigateConfig:
     # An answer farther away is taken only if its calibrated confidence reaches this and a second
     # look (after a scan step) answers the same place (within one hop).
     recover_far_confidence: float = 0.9
+    # The start: an answer below LocalizeConfig.min_confidence is taken when it has at least
+    # start_verified_confidence and the servo's geometry confirms it twice: its relative pose has at
+    # least switch_min_inliers inliers in the frame and again after the next scan step, and the two
+    # headings differ by the turn the two frames measure between them (within
+    # start_confirm_heading_deg; the disturbances make the commanded turn unknown). Chance inliers do
+    # not close that loop; a calibrated 0.9 on one frame missed whole turns (held-out world 108).
+    start_verified_confidence: float = 0.5
+    start_confirm_heading_deg: float = 5.0
     scan_turn_rps: float = 0.5  # turning rate while scanning for a place to localize [rad/s]
     scan_every_s: float = 0.6  # localize attempts while scanning [s]
     time_budget_base_s: float = 60.0  # the whole navigation may last this [s] ...
@@ -639,6 +655,10 @@ class NavigateConfig:
             raise ConfigError("settle_steps and lost_after_steps must be >= 1, max_replans >= 0")
         if not 0 <= self.give_up_budget_fraction < 1 or not 0 <= self.recover_far_confidence <= 1:
             raise ConfigError("navigate give_up_budget_fraction must lie in [0, 1), recover_far_confidence in [0, 1]")
+        if not 0 <= self.start_verified_confidence <= 1 or not 0 <= self.arrive_floor_min_fraction <= 1:
+            raise ConfigError("navigate start_verified_confidence and arrive_floor_min_fraction must lie in [0, 1]")
+        if not self.arrive_floor_max_m > 0 or not self.start_confirm_heading_deg > 0:
+            raise ConfigError("navigate arrive_floor_max_m and start_confirm_heading_deg must be positive")
         if self.recover_backoff_s < 0 or self.recover_local_hops < 0:
             raise ConfigError("navigate recover_backoff_s and recover_local_hops must be >= 0")
 

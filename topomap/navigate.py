@@ -23,12 +23,22 @@ or when, aligned and close, it stops making progress (``settle_*`` in
 and in both cases only if the image agrees (:class:`~topomap.agreement.GoalAgreement`): the verified
 matches with the goal keyframe have moved less than ``arrive_image_error`` of the image width. Facing
 a single wall the planar relative pose is ambiguous, so the pose estimate alone cannot certify arrival.
+With the camera height known, the floor must agree too: the distance the lowest matched points measure
+(median over the settle window) below ``arrive_floor_max_m``. On long views the goal's scale from its
+neighbours can be several times too small — the servo then believes it has arrived a quarter metre
+out, where the image barely differs — so a refused arrival hands the servo the scale the floor measured.
 The disturbance estimates carry from one subgoal to the next, and so does the heading: at a switch
 the heading relative to the new subgoal is predicted from the heading relative to the old one and
 the two keyframes' relative heading (their images' planar geometry, stored on the map's edges:
 :mod:`topomap.relative_motion`), so a vehicle that does not
 see the new subgoal yet — at a corner the next keyframe may lie a turn away — turns toward it
 instead of holding still (:meth:`~topomap.servo.servo.AppearanceServo.reacquire_command`).
+
+The start. An answer at ``LocalizeConfig.min_confidence`` is taken at once; a weaker one (at least
+``start_verified_confidence``) only once the servo's geometry confirms it: its relative pose to the
+node has ``switch_min_inliers`` inliers in two frames a scan step apart, and the two headings differ
+by the turn the two frames measure between them. Otherwise the scan goes on; after a full turn the
+start fails ("could not localize") rather than guess.
 
 Recovery (docs/theory.md section 4.4). After ``lost_after_steps`` periods without usable geometry,
 when a subgoal is not reached within ``subgoal_timeout_s`` or a look-alike fooled the goal's settle
@@ -69,10 +79,11 @@ from topomap.errors import NoRouteError
 from topomap.graph import TopoMap
 from topomap.localize import Localization, Localizer, Query
 from topomap.matching import Verification, verify
-from topomap.motion import STOP, Command, VehicleKind, vehicle_kind
+from topomap.motion import STOP, Command, VehicleKind, vehicle_kind, wrap_angle
 from topomap.plan import Planner, Route
-from topomap.relative_motion import KeyframePairs
-from topomap.servo.pose import PoseStatus
+from topomap.relative_motion import SCALE_CLIP_FACTOR, KeyframePairs
+from topomap.servo.pose import PoseStatus, RelativePose
+from topomap.servo.relpose import relative_pose
 from topomap.servo.servo import AppearanceServo, ServoOutput, ServoStatus
 
 __all__ = ["RobotLike", "NavStatus", "EventKind", "NavEvent", "NavOutcome", "Navigator"]
@@ -174,24 +185,54 @@ class _Settle:
 
     def __init__(self, config: NavigateConfig):
         self.config = config
-        self.history: list[tuple[float, float, float]] = []  # (time, estimated distance, heading)
+        # (time, estimated distance, heading, distance the floor measures [m] or NaN)
+        self.history: list[tuple[float, float, float, float]] = []
         self.converged_streak = 0
         self.false_arrival = 0
 
-    def update(self, time_s: float, s: ServoOutput, image_ok: bool, loosely_agrees) -> str | None:
+    def update(self, time_s: float, s: ServoOutput, image_ok: bool, loosely_agrees,
+               floor_m: float = math.nan) -> str | None:
         """One period at the goal; ``loosely_agrees()``: the image agrees within the patience bound
-        (asked only when needed). Returns ``"precise"``, ``"settled"`` or None (not there yet)."""
+        (asked only when needed); ``floor_m``: the distance the floor measures in this image [m] (NaN:
+        unknown). Returns ``"precise"``, ``"settled"``, ``"far"`` (the servo and the image say
+        arrived, the floor disagrees: :meth:`floor_scale` is the scale it measures) or None."""
         cfg = self.config
         self.converged_streak = self.converged_streak + 1 if (s.converged and image_ok) else 0
-        self.history.append((time_s, s.position_error_m, s.heading_error_rad))
+        self.history.append((time_s, s.position_error_m, s.heading_error_rad, floor_m))
         stalled = self.stalled(cfg.settle_max_m, cfg.settle_window_s, cfg.settle_progress_m)
         self.false_arrival = self.false_arrival + 1 if ((s.converged or stalled) and not image_ok) else 0
         if self.converged_streak >= cfg.settle_steps or (image_ok and stalled):
-            return "precise"
+            return "precise" if self.floor_agrees(cfg.arrive_floor_max_m) else "far"
         if (self.stalled(cfg.settle_patience_max_m, cfg.settle_patience_s, cfg.settle_patience_progress_m)
                 and loosely_agrees()):
-            return "settled"
+            return "settled" if self.floor_agrees(cfg.settle_patience_max_m) else "far"
         return None
+
+    def floor_distance(self) -> float:
+        """Median distance the floor measured over the settle window [m]; NaN when fewer than
+        ``arrive_floor_min_fraction`` of its frames measured it."""
+        cfg = self.config
+        now = self.history[-1][0]
+        floor = np.array([h[3] for h in self.history if h[0] >= now - cfg.settle_window_s])
+        ok = np.isfinite(floor)
+        if not ok.any() or ok.mean() < cfg.arrive_floor_min_fraction:
+            return math.nan
+        return float(np.median(floor[ok]))
+
+    def floor_agrees(self, bound_m: float) -> bool:
+        """The floor does not contradict an arrival within ``bound_m`` (no floor measured: no contradiction)."""
+        d = self.floor_distance()
+        return not d >= bound_m
+
+    def floor_scale(self, scale_m: float) -> float | None:
+        """The goal's scale [m per scaled unit] the floor measured over the settle window, from the
+        servo's distances at ``scale_m``; None without frames that measured both."""
+        now = self.history[-1][0]
+        rows = np.array([(h[1], h[3]) for h in self.history if h[0] >= now - self.config.settle_window_s])
+        ok = np.isfinite(rows).all(axis=1) & (rows[:, 0] > 0)
+        if not ok.any():
+            return None
+        return float(np.median(rows[ok, 1] / rows[ok, 0])) * scale_m
 
     def stalled(self, max_m: float, window_s: float, progress_m: float) -> bool:
         """Aligned, within ``max_m``, and less than ``progress_m`` of progress over ``window_s``.
@@ -202,7 +243,7 @@ class _Settle:
         now = history[-1][0]
         if now - history[0][0] < window_s:
             return False
-        window = np.array([h[1:] for h in history if h[0] >= now - window_s])
+        window = np.array([h[1:3] for h in history if h[0] >= now - window_s])
         ok = np.isfinite(window).all(axis=1)
         if ok.mean() < SETTLE_MIN_VALID_FRACTION:
             return False
@@ -317,27 +358,66 @@ class Navigator:
     # ------------------------------------------------------------------ localization
     def _localize(self) -> Iterator[NavEvent]:
         """Global localization from the current image; turns in place to scan when unsure.
-        Sets ``self._here``; raises _Failed when no place is recognised in a full turn."""
+        Sets ``self._here``; raises _Failed when no place is recognised in a full turn.
+
+        An answer at ``min_confidence`` is taken at once; a weaker one (at least
+        ``start_verified_confidence``) once the servo's geometry confirms it (:meth:`_start_pose`)."""
         cfg = self.config
         best: Localization | None = None
         turned = 0.0
+        found: tuple[Localization, str] | None = None
+        pending: tuple[Localization, RelativePose, Query] | None = None  # (answer, its pose, that frame)
         while True:
             image, q = self._look(localizing=True)
+            if pending is not None:  # the previous frame's candidate: does its geometry hold after the turn?
+                cand, pose, before = pending
+                again = self._start_pose(q, cand.node)
+                turn = self._frame_heading(q, before)  # the turn as the two images measure it
+                if (again is not None and math.isfinite(turn) and abs(wrap_angle(again.theta - pose.theta - turn))
+                        < math.radians(cfg.start_confirm_heading_deg)):
+                    found = (cand, f"confidence {cand.confidence:.2f}, confirmed by its geometry in two frames "
+                                   f"({pose.inliers} and {again.inliers} inliers)")
+                    break
+                pending = None
             loc = self.localizer.localize_query(q)
             if best is None or loc.confidence > best.confidence:
                 best = loc
             if loc.localized:
+                found = (loc, f"confidence {loc.confidence:.2f}")
                 break
-            if turned >= 2 * math.pi:
+            if loc.confidence >= cfg.start_verified_confidence and (pose := self._start_pose(q, loc.node)) is not None:
+                pending = (loc, pose, q)
+            if turned >= 2 * math.pi and pending is None:
                 break
             turned += self._scan_step()  # turn for scan_every_s, then look again
         self._hold()
-        if best is None or not best.localized:
+        if found is None:
             conf = best.confidence if best else 0.0
             raise _Failed(NavStatus.FAILED, f"could not localize in the map after a full turn (best confidence {conf:.2f})")
-        self._here = best.node
-        yield NavEvent(EventKind.LOCALIZED, self._time, f"at node {best.node} (confidence {best.confidence:.2f})",
-                       subgoal=best.node, localization=best)
+        loc, why = found
+        self._here = loc.node
+        yield NavEvent(EventKind.LOCALIZED, self._time, f"at node {loc.node} ({why})", subgoal=loc.node, localization=loc)
+
+    def _frame_heading(self, q: Query, before: Query) -> float:
+        """Heading of the image of ``q`` relative to the image of ``before`` [rad]; NaN without a pose."""
+        v = verify(q.features, before.features, self.map.config.match)
+        if not v.verified:
+            return math.nan
+        use = v.inlier_matches
+        pose = relative_pose(q.features.keypoints[use.ia], before.features.keypoints[use.ib], self.camera,
+                             self.servo.config.geometry)
+        return pose.theta if pose.has_heading else math.nan
+
+    def _start_pose(self, q: Query, node: int) -> RelativePose | None:
+        """The servo's relative pose of the image of ``q`` in ``node``'s keyframe when it has a heading
+        from at least ``switch_min_inliers`` inliers, else None."""
+        v = self._match(q, node)
+        if not v.verified:
+            return None
+        use = v.inlier_matches
+        pose = relative_pose(q.features.keypoints[use.ia], self.map.nodes[node].features.keypoints[use.ib],
+                             self.camera, self.servo.config.geometry, goal_camera=self.map.camera)
+        return pose if pose.has_heading and pose.inliers >= self.config.switch_min_inliers else None
 
     def _plan(self, start: int, goal: int) -> Route:
         try:
@@ -385,6 +465,16 @@ class Navigator:
         self.servo.retarget(normals, scale if i == len(nodes) - 1 else None, heading_prior)  # metric at the goal
         self.servo.reconfigure(**(self._goal_servo if i == len(nodes) - 1 else self._waypoint_servo))
 
+    def _rescale(self, leg: _Leg) -> None:
+        """The floor contradicted an arrival: the goal's scale is off. Take the scale the floor measured
+        (within the range a goal's scale may take) and judge arrival on a fresh window."""
+        nominal = self.servo.config.nominal_scale_m
+        measured = leg.settle.floor_scale(self.servo.scale_m)
+        if measured is not None:
+            self.servo.rescale(float(np.clip(measured, nominal / SCALE_CLIP_FACTOR, SCALE_CLIP_FACTOR * nominal)))
+        self._count("arrivals the floor refused")
+        leg.settle = _Settle(self.config)
+
     def _start_leg(self, nodes: list[int]) -> _Leg:
         """The one place a route's loop state starts (first plan and every re-plan)."""
         leg = _Leg(list(nodes), _Settle(self.config), self._time)
@@ -417,14 +507,19 @@ class Navigator:
 
             # -- final goal: settle
             if final:
+                floor_m = s.floor_distance_h * self._camera_height_m if self._camera_height_m is not None else math.nan
                 arrived = leg.settle.update(
                     self._time, s, self.agreement.agrees(q, v, sub),
-                    lambda: self.agreement.agrees(q, v, sub, cfg.settle_patience_image_error))
-                if arrived:
+                    lambda: self.agreement.agrees(q, v, sub, cfg.settle_patience_image_error), floor_m)
+                if arrived == "far":
+                    self._rescale(leg)
+                elif arrived:
                     self._move(STOP)
                     out.status = NavStatus.ARRIVED
+                    floor = leg.settle.floor_distance()
                     out.message = f"arrived at node {goal}" + (
-                        "" if arrived == "precise" else f" (settled {s.position_error_m:.2f} m off by its estimate: no further progress)")
+                        "" if arrived == "precise" else f" (settled {s.position_error_m:.2f} m off by its estimate: no further progress)") + (
+                        f" (the floor measures {floor:.2f} m)" if math.isfinite(floor) else "")
                     yield NavEvent(EventKind.ARRIVED, self._time, out.message, subgoal=goal, route=tuple(nodes))
                     return
             # -- intermediate subgoal: switch?
@@ -576,6 +671,8 @@ class Navigator:
             parts.append(f"turned {t['searched']:.0f} deg in place searching")
         if "re-localizations" in t:
             parts.append(f"re-localized {t['re-localizations']:.0f} times ({t.get('far re-localizations', 0):.0f} far)")
+        if "arrivals the floor refused" in t:
+            parts.append(f"took the floor's scale at the goal {t['arrivals the floor refused']:.0f} times")
         return ", ".join(parts) or "nothing"
 
     def _turning_toward(self, s: ServoOutput) -> bool:

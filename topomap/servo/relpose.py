@@ -97,13 +97,16 @@ def relative_pose_with_scales(
     matched_goal_px: np.ndarray,
     camera: CameraIntrinsics,
     config: RelativePoseConfig | None = None,
+    goal_camera: CameraIntrinsics | None = None,
 ) -> tuple[RelativePose, float | None, float | None]:
     """:func:`relative_pose` and the distance ``rho / lambda`` in two scale conventions, from one run:
     the configuration's own before the plane's choice (what ``plane_inlier_fraction=1`` reports) and
     the camera height's; each None where that pose would not be OK. Their ratio is a metric scale."""
     cur = points_array(matched_cur_px, "matched_cur_px")
     goal = points_array(matched_goal_px, "matched_goal_px", rows=len(cur))
-    return _solve(camera.normalize(cur), camera.normalize(goal), 0.5 * (camera.fx + camera.fy), config or RelativePoseConfig())
+    goal_camera = goal_camera or camera
+    return _solve(camera.normalize(cur), goal_camera.normalize(goal), 0.5 * (camera.fx + camera.fy),
+                  config or RelativePoseConfig())
 
 
 def _rho(k: float, psi: float) -> float:

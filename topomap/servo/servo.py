@@ -29,7 +29,7 @@ from topomap.errors import ConfigError
 from topomap.motion import STOP, Command, VehicleKind, vehicle_kind
 from topomap.servo.homography import choose_plane_solution
 from topomap.servo.pose import PoseStatus, RelativePose
-from topomap.servo.relpose import relative_pose
+from topomap.servo.relpose import relative_pose_with_scales
 from topomap.servo.laws import LawState, omni_law, unicycle_law
 from topomap.servo.disturbance import DisturbanceEstimate, DisturbanceObserver
 
@@ -58,7 +58,11 @@ class ServoOutput:
     to the goal ``rho / lambda`` (0 when the images show no translation, NaN when lost);
     ``position_error_m``: the same times the goal's scale (``retarget``; default ``nominal_scale_m``);
     ``heading_error_rad``: estimated relative heading (NaN when lost); ``inliers``: matches that
-    agree with the planar motion; ``converged``: both errors below the configured tolerances.
+    agree with the planar motion; ``converged``: both errors below the configured tolerances;
+    ``floor_distance_h``: the distance to the goal in camera heights, from the lowest matched points
+    taken as floor (the camera-height convention of the same solve, before a wall's plane is
+    chosen; NaN without a translating pose or floor points) — metric given the camera's height,
+    independent of the goal's scale.
     """
 
     command: Command
@@ -70,6 +74,7 @@ class ServoOutput:
     inliers: int
     converged: bool
     disturbance: DisturbanceEstimate
+    floor_distance_h: float = math.nan
 
 
 class AppearanceServo:
@@ -114,6 +119,13 @@ class AppearanceServo:
         keep = self.state.integral if self.vehicle is VehicleKind.UNICYCLE else (0.0, 0.0)
         self.state = LawState(integral=keep)
 
+    def rescale(self, scale_m: float) -> None:
+        """The same goal at another scale (metres per scaled unit): measured better than at
+        :meth:`retarget`; pose references and disturbance estimates kept."""
+        if not (math.isfinite(scale_m) and scale_m > 0):
+            raise ConfigError(f"scale_m={scale_m} must be a positive number of metres")
+        self.scale_m = float(scale_m)
+
     def reset(self) -> None:
         """Forget everything (disturbances included)."""
         self.observer = DisturbanceObserver(self.config.observer, 1.0 / self.config.nominal_scale_m)
@@ -143,7 +155,10 @@ class AppearanceServo:
             raise ConfigError(f"control period dt={dt} must be a positive number of seconds")
         cfg = self.config
         self.steps += 1
-        pose = relative_pose(matched_cur_px, matched_goal_px, camera, cfg.geometry, goal_camera=goal_camera)
+        # the floor's distance comes from the same solve: a metric check of the goal's scale
+        pose, _, rho_floor = relative_pose_with_scales(matched_cur_px, matched_goal_px, camera, cfg.geometry,
+                                                       goal_camera=goal_camera)
+        floor_s = rho_floor if rho_floor is not None else math.nan
         pose = choose_plane_solution(pose, self.wall_normals)
         if pose.status is PoseStatus.OK:
             x_s, z_s = pose.x_s, pose.z_s
@@ -153,7 +168,7 @@ class AppearanceServo:
             est = self.observer.update(dt, last_command, None, None)
             log.debug("servo step %d: no geometry (%s, %d inliers)", self.steps, pose.status.value, pose.inliers)
             return ServoOutput(self.reacquire_command(est), ServoStatus.LOST, pose, math.nan, math.nan, math.nan,
-                               pose.inliers, False, est)
+                               pose.inliers, False, est, floor_s)
         theta = pose.theta
         est = self.observer.update(dt, last_command, theta, pose.position_s if pose.status is PoseStatus.OK else None)
         # the laws' metric radii and gains at this goal's scale (the observer keeps its own)
@@ -173,7 +188,8 @@ class AppearanceServo:
             status = ServoStatus.ALIGNING
         else:
             status = ServoStatus.APPROACHING
-        return ServoOutput(cmd.for_vehicle(self.vehicle), status, pose, rho_s, dist_m, theta, pose.inliers, converged, est)
+        return ServoOutput(cmd.for_vehicle(self.vehicle), status, pose, rho_s, dist_m, theta, pose.inliers, converged, est,
+                           floor_s)
 
     def reacquire_command(self, est: DisturbanceEstimate) -> Command:
         """While blind: hold position (:meth:`hold_command`) and turn in place toward the goal's
