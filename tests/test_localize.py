@@ -422,7 +422,7 @@ def test_recent_scores_discount_a_node_that_matches_every_frame():
 def test_recent_scores_leave_clean_and_early_frames_alone():
     rng = np.random.default_rng(1)
     recent = _recent()
-    for k in range(RECENT_MIN_FRAMES):
+    for _ in range(RECENT_MIN_FRAMES):
         s = rng.normal(size=20)
         assert np.array_equal(recent.debias(s, 1.0), s)  # too few frames to know a node's bias
     s = rng.normal(size=20)

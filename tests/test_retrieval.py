@@ -58,17 +58,7 @@ def greedy_words(voc: Vocabulary, desc: np.ndarray) -> np.ndarray:
 def tfidf_cosine(index: BowIndex, words_of: dict[int, np.ndarray], query_words: np.ndarray) -> np.ndarray:
     """Oracle for BowIndex.scores: dense TF-IDF vectors and their cosine, idf = log((N+1)/(df+1)),
     the query's stop words dropped after normalisation (as in the index)."""
-    ids = sorted(words_of)
-    n, v = len(ids), index.vocabulary.size
-    tf = np.zeros((n, v))
-    for r, i in enumerate(ids):
-        np.add.at(tf[r], words_of[i], 1.0)
-    idf = np.log((n + 1.0) / ((tf > 0).sum(axis=0) + 1.0))
-    docs = tf * idf
-    docs /= np.maximum(np.linalg.norm(docs, axis=1, keepdims=True), 1e-300)
-    q = np.bincount(query_words, minlength=v) * idf
-    q /= max(np.linalg.norm(q), 1e-300)
-    q[index.stop_words] = 0.0
+    docs, q = tfidf_cosine_terms(index, words_of, query_words)
     return docs @ q
 
 
@@ -80,8 +70,7 @@ def tfidf_cosine_rows(index: BowIndex, words_of: dict[int, np.ndarray], query_wo
     q = np.asarray(query_words)
     if keep is None:
         return tfidf_cosine(index, ordered, q)
-    full = tfidf_cosine_terms(index, ordered, q)
-    docs, weights = full
+    docs, weights = tfidf_cosine_terms(index, ordered, q)
     weights[~np.isin(np.arange(len(weights)), keep)] = 0.0
     return docs @ weights
 

@@ -608,10 +608,9 @@ class SequenceLocalizer:
         # contrast but loses the texture of its bright half; docs/localization.md has the figures)
         reliability = 1.0 / (1.0 + ev1["low_snr"] + ev1["contrast_loss"] + ev1["clipping"])
         # ... and the more degraded, the more each node is judged against its own recent scores
-        obs = self._recent.debias(score, 1.0 - reliability)
+        obs = self._recent.debias(score, 1.0 - reliability)  # score itself, or a new array
         if len(ex):
             score[ex] = -np.inf
-            obs = obs.copy()
             obs[ex] = -np.inf
         lik = loc.likelihood(obs, cfg.beta * reliability)
         post = prior * lik[:, None]

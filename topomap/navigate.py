@@ -76,6 +76,7 @@ from topomap.agreement import GoalAgreement
 from topomap.camera import CameraIntrinsics
 from topomap.config import LocalizeConfig, NavigateConfig, PlanConfig, ServoConfig
 from topomap.errors import NoRouteError
+from topomap.features import Features
 from topomap.graph import TopoMap
 from topomap.localize import Localization, Localizer, Query
 from topomap.matching import Verification, verify
@@ -398,26 +399,27 @@ class Navigator:
         self._here = loc.node
         yield NavEvent(EventKind.LOCALIZED, self._time, f"at node {loc.node} ({why})", subgoal=loc.node, localization=loc)
 
+    def _pose_against(self, q: Query, other: Features, other_camera: CameraIntrinsics | None = None
+                      ) -> RelativePose | None:
+        """The servo's relative pose of the image of ``q`` in the image of ``other`` (seen by
+        ``other_camera``, default the robot's) from their verified matches; None when they do not verify."""
+        v = verify(q.features, other, self.map.config.match)
+        if not v.verified:
+            return None
+        use = v.inlier_matches
+        return relative_pose(q.features.keypoints[use.ia], other.keypoints[use.ib], self.camera,
+                             self.servo.config.geometry, goal_camera=other_camera)
+
     def _frame_heading(self, q: Query, before: Query) -> float:
         """Heading of the image of ``q`` relative to the image of ``before`` [rad]; NaN without a pose."""
-        v = verify(q.features, before.features, self.map.config.match)
-        if not v.verified:
-            return math.nan
-        use = v.inlier_matches
-        pose = relative_pose(q.features.keypoints[use.ia], before.features.keypoints[use.ib], self.camera,
-                             self.servo.config.geometry)
-        return pose.theta if pose.has_heading else math.nan
+        pose = self._pose_against(q, before.features)
+        return pose.theta if pose is not None and pose.has_heading else math.nan
 
     def _start_pose(self, q: Query, node: int) -> RelativePose | None:
         """The servo's relative pose of the image of ``q`` in ``node``'s keyframe when it has a heading
         from at least ``switch_min_inliers`` inliers, else None."""
-        v = self._match(q, node)
-        if not v.verified:
-            return None
-        use = v.inlier_matches
-        pose = relative_pose(q.features.keypoints[use.ia], self.map.nodes[node].features.keypoints[use.ib],
-                             self.camera, self.servo.config.geometry, goal_camera=self.map.camera)
-        return pose if pose.has_heading and pose.inliers >= self.config.switch_min_inliers else None
+        pose = self._pose_against(q, self.map.nodes[node].features, self.map.camera)
+        return pose if pose is not None and pose.has_heading and pose.inliers >= self.config.switch_min_inliers else None
 
     def _plan(self, start: int, goal: int) -> Route:
         try:
