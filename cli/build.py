@@ -151,6 +151,7 @@ def build(
         "frames_skipped": run["frames_skipped"],
         "skipped": run["skipped"],
         "nodes_added": run["nodes_added"],
+        "aligned_links_added": run.get("aligned_links_added", 0),
         **{k: v for k, v in m.summary().items() if k in ("nodes", "frames", "edges", "edges_by_kind", "components")},
         "features": m.feature_kind,
         "workers": executor.describe(),
@@ -167,6 +168,8 @@ def build(
         t.add_row("  skipped", f"{s['frame']}: {s['reason']}")
     t.add_row("nodes", f"{summary['nodes']}  (+{summary['nodes_added']})" if append else str(summary["nodes"]))
     t.add_row("edges", f"{summary['edges']}  " + ", ".join(f"{k} {v}" for k, v in summary["edges_by_kind"].items()))
+    if append:
+        t.add_row("aligned", f"{summary['aligned_links_added']} keyframes linked by sequence alignment (no verified geometry)")
     t.add_row("components", str(summary["components"]))
     t.add_row("features", f"{m.feature_kind}, working size {m.working_size[0]}x{m.working_size[1]}, camera: {m.camera.source}")
     t.add_row("time", f"{seconds:.1f} s  ({summary['frames_per_second']} frames/s; {summary['workers']})")
@@ -202,7 +205,8 @@ def info(
     t.add_row("calibration", _calibration_line(m, map_path))
     t.add_row("experiences", "; ".join(
         f"{x['sequence']}: {Path(str(x['source'])).name} ({x['nodes']} nodes"
-        + "".join(f", {n} links to {o}" for o, n in x["links"].items()) + ")" for x in data["experiences"]))
+        + "".join(f", {n} links to {o}" for o, n in x["links"].items())
+        + "".join(f", {n} aligned to {o}" for o, n in x.get("aligned", {}).items()) + ")" for x in data["experiences"]))
     t.add_row("working size", f"{data['working_size'][0]}x{data['working_size'][1]}")
     t.add_row("schema version", str(version) if version == SCHEMA_VERSION
               else f"{version} (read as {SCHEMA_VERSION}; `topomap upgrade {map_path}` rewrites it)")

@@ -426,6 +426,13 @@ def build_map(
     new_ids = [n for n in sorted(tmap.nodes) if n >= first_node]
     build_index(tmap, on_progress, executor=executor)
     loops = _close_loops(tmap, new_ids, config, on_progress, executor=executor)
+    aligned = 0
+    if base is not None and config.align_min_confidence is not None:
+        from topomap.alignment import align_experience  # imports the localizer: only an --append needs it
+
+        links = align_experience(tmap, new_ids, config.align_min_confidence, seed=config.seed)
+        tmap.set_aligned_links(tmap.aligned_links() + links)
+        aligned = len(links)
     annotate_edges(tmap, executor=executor)  # the keyframe pairs' geometry, read by the navigator
     calibrate(tmap, on_progress)
     tmap.sequences.append(
@@ -438,6 +445,7 @@ def build_map(
             "skipped": [{"frame": n, "reason": r} for n, r in skipped],
             "nodes_added": len(new_ids),
             "loop_edges_added": loops,
+            "aligned_links_added": aligned,
             "seconds": round(time.perf_counter() - t0, 3),
             "input_size": list(input_size[0]) if input_size[0] else None,
         }

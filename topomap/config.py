@@ -165,6 +165,10 @@ class BuildConfig:
     image_quality: int = 40  # JPEG quality of the keyframe images, 1..100
     thumbnail_quality: int = 85  # JPEG quality of the thumbnails, 1..100
     seed: int = 0  # every random choice (vocabulary k-means, RANSAC, calibration samples) derives from this
+    # --append: a keyframe of the new experience is linked to the place the sequence filter answers
+    # (over the other experiences) at this probability or more, where no loop closure joins it; None:
+    # no alignment (topomap.alignment; a false link is worse than a missing one)
+    align_min_confidence: float | None = 0.95
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
 
     def __post_init__(self) -> None:
@@ -172,6 +176,8 @@ class BuildConfig:
             raise ConfigError(
                 f"keyframe_min_inliers={self.keyframe_min_inliers} must be >= match.min_inliers={self.match.min_inliers}"
             )
+        if self.align_min_confidence is not None and not 0.0 < self.align_min_confidence <= 1.0:
+            raise ConfigError(f"align_min_confidence={self.align_min_confidence} must lie in (0, 1] (or None: no alignment)")
         if self.loop_min_inliers < self.match.min_inliers:
             raise ConfigError(
                 f"loop_min_inliers={self.loop_min_inliers} must be >= match.min_inliers={self.match.min_inliers}"

@@ -10,6 +10,12 @@ servoing along it is possible:
 * ``loop`` — two non-consecutive nodes recognised as the same place (loop closure, or a link
   between sequences added with ``--append``);
 * ``manual`` — added by a user.
+
+*Aligned links* join keyframes of two experiences (build runs) that sequence alignment found to
+show the same place where no geometry verifies it (night against day, an appearance-only map): not
+edges — nothing can servo along them — but the same place for localization (:meth:`TopoMap.place_ids`,
+the sequence filter's moves). Stored as ``arrays["aligned_links"]`` (M, 2) int64 and
+``arrays["aligned_confidence"]`` (M,) float32, see :mod:`topomap.alignment`.
 """
 
 from __future__ import annotations
@@ -23,10 +29,14 @@ import numpy as np
 
 from topomap.camera import CameraIntrinsics
 from topomap.config import BuildConfig
-from topomap.errors import ConfigError, NodeNotFoundError
+from topomap.errors import ConfigError, MapFormatError, NodeNotFoundError
 from topomap.features import Features
 
-__all__ = ["EdgeKind", "Node", "Edge", "FrameRecord", "TopoMap"]
+__all__ = ["EdgeKind", "Node", "Edge", "FrameRecord", "TopoMap", "ALIGNED_LINKS", "ALIGNED_CONFIDENCE"]
+
+#: ``TopoMap.arrays`` names of the aligned links: (M, 2) int64 node pairs and their (M,) confidence.
+ALIGNED_LINKS = "aligned_links"
+ALIGNED_CONFIDENCE = "aligned_confidence"
 
 
 class EdgeKind(str, enum.Enum):
@@ -202,28 +212,69 @@ class TopoMap:
         counts = Counter(e.kind.value for e in self.edges.values())
         return {k.value: counts.get(k.value, 0) for k in EdgeKind}
 
+    def aligned_links(self) -> list[tuple[int, int, float]]:
+        """``(a, b, confidence)`` per aligned link (see the module docstring), ``a`` < ``b``.
+
+        The arrays may come from a stranger's file: a malformed pair of arrays, or a link naming a
+        node that is not in the map or two nodes of one experience, raises :class:`MapFormatError`."""
+        if ALIGNED_LINKS not in self.arrays and ALIGNED_CONFIDENCE not in self.arrays:
+            return []
+        pairs, conf = self.arrays.get(ALIGNED_LINKS), self.arrays.get(ALIGNED_CONFIDENCE)
+        fix = "the file is damaged: rebuild the map"
+        if (pairs is None or conf is None or pairs.ndim != 2 or pairs.shape[1:] != (2,) or pairs.dtype.kind not in "iu"
+                or conf.shape != (len(pairs),) or conf.dtype.kind != "f" or not np.all((conf >= 0) & (conf <= 1))):
+            raise MapFormatError(f"the map's aligned links are malformed; {fix}")
+        out = []
+        for (a, b), c in zip(pairs.tolist(), conf.tolist()):
+            na, nb = self.nodes.get(a), self.nodes.get(b)
+            if na is None or nb is None or na.sequence == nb.sequence:
+                raise MapFormatError(f"the map's aligned link {a}-{b} does not join nodes of two experiences; {fix}")
+            out.append((min(a, b), max(a, b), float(c)))
+        return out
+
+    def set_aligned_links(self, links: list[tuple[int, int, float]]) -> None:
+        """Replace the aligned links (``[(a, b, confidence)]``; none: the arrays are removed)."""
+        for a, b, _ in links:
+            self.node(a), self.node(b)
+        if not links:
+            self.arrays.pop(ALIGNED_LINKS, None)
+            self.arrays.pop(ALIGNED_CONFIDENCE, None)
+            return
+        links = sorted((min(a, b), max(a, b), c) for a, b, c in links)
+        self.arrays[ALIGNED_LINKS] = np.array([(a, b) for a, b, _ in links], np.int64).reshape(-1, 2)
+        self.arrays[ALIGNED_CONFIDENCE] = np.array([c for *_, c in links], np.float32)
+
     def experiences(self) -> list[dict]:
         """One entry per build run (an *experience* of the place: another day, season, lighting):
-        ``sequence``, ``source``, ``nodes`` and ``links`` = {other sequence: loop edges joining them}."""
+        ``sequence``, ``source``, ``nodes``, ``links`` = {other sequence: loop edges joining them}
+        and ``aligned`` = {other sequence: aligned links joining them}."""
         count = Counter(n.sequence for n in self.nodes.values())
         links: dict[int, Counter] = {s: Counter() for s in count}
+        aligned: dict[int, Counter] = {s: Counter() for s in count}
         for e in self.edges.values():
             sa, sb = self.nodes[e.a].sequence, self.nodes[e.b].sequence
             if sa != sb:
                 links[sa][sb] += 1
                 links[sb][sa] += 1
+        for a, b, _ in self.aligned_links():
+            sa, sb = self.nodes[a].sequence, self.nodes[b].sequence
+            aligned[sa][sb] += 1
+            aligned[sb][sa] += 1
         return [{"sequence": s, "source": (self.sequences[s].get("source") if s < len(self.sequences) else None),
-                 "nodes": count[s], "links": dict(sorted(links[s].items()))} for s in sorted(count)]
+                 "nodes": count[s], "links": dict(sorted(links[s].items())),
+                 "aligned": dict(sorted(aligned[s].items()))} for s in sorted(count)]
 
     def place_ids(self) -> dict[int, int]:
         """Node -> shared place: the smallest node id among the node and the nodes of other experiences
-        it is joined to by an edge, so that a place mapped in several experiences answers as one."""
+        it is joined to by an edge or an aligned link, so that a place mapped in several experiences
+        answers as one."""
         place = {n: n for n in self.nodes}
-        for e in self.edges.values():
-            if self.nodes[e.a].sequence != self.nodes[e.b].sequence:
-                low = min(place[e.a], place[e.b], e.a, e.b)
-                place[e.a] = min(place[e.a], low)
-                place[e.b] = min(place[e.b], low)
+        joins = [(e.a, e.b) for e in self.edges.values() if self.nodes[e.a].sequence != self.nodes[e.b].sequence]
+        joins += [(a, b) for a, b, _ in self.aligned_links()]
+        for a, b in joins:
+            low = min(place[a], place[b], a, b)
+            place[a] = min(place[a], low)
+            place[b] = min(place[b], low)
         return place
 
     def summary(self) -> dict:

@@ -593,10 +593,12 @@ class SequenceLocalizer:
     def update(self, image: np.ndarray) -> Localization:
         return self.update_query(self.loc.prepare(image))
 
-    def update_query(self, q: Query, exclude: Iterable[int] = ()) -> Localization:
-        """Filter one prepared frame; node ids in ``exclude`` get no observation weight (calibration)."""
+    def update_query(self, q: Query, exclude: Iterable[int] = (), *, exclude_rows: np.ndarray | None = None
+                     ) -> Localization:
+        """Filter one prepared frame; node ids in ``exclude`` (or rows in ``exclude_rows``, for a long
+        run excluding the same many nodes) get no observation weight (calibration, alignment)."""
         loc, cfg = self.loc, self.loc.config
-        ex = loc.rows_of(exclude)
+        ex = loc.rows_of(exclude) if exclude_rows is None else np.asarray(exclude_rows, np.intp)
         plain, score = loc._appearances(q, hub_correction=True)
         # the frame on its own: its evidence, and (calibrated maps) the probability that it is right
         self.frame, checks = loc._single_frame(q, ex, plain)
@@ -652,10 +654,12 @@ class SequenceLocalizer:
 
 # ---------------------------------------------------------------------- graph helpers
 def _adjacency(tmap: TopoMap, node_ids: np.ndarray, row: dict[int, int]) -> sp.csr_matrix:
-    """Symmetric (N, N) 0/1 adjacency of the map graph in ``node_ids`` order."""
+    """Symmetric (N, N) 0/1 adjacency of the map graph in ``node_ids`` order, aligned links included
+    (one place in two experiences: the filter moves across them, the answer's mass counts both)."""
     n = len(node_ids)
-    a = [row[e.a] for e in tmap.edges.values() if e.a in row and e.b in row]
-    b = [row[e.b] for e in tmap.edges.values() if e.a in row and e.b in row]
+    pairs = [(e.a, e.b) for e in tmap.edges.values()] + [(x, y) for x, y, _ in tmap.aligned_links()]
+    a = [row[x] for x, y in pairs if x in row and y in row]
+    b = [row[y] for x, y in pairs if x in row and y in row]
     m = sp.coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n))
     m = ((m + m.T) > 0).astype(np.float64).tocsr()
     m.setdiag(0)
