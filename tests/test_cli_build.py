@@ -237,6 +237,18 @@ def test_truncated_map(runner, cli_app, walk_copy):
     assert_error(runner.invoke(cli_app, ["info", str(walk_copy)]), "copy.topomap", "rebuild it")
 
 
+@pytest.mark.parametrize("links", [[[0, 10_000]], [[0, 1]]], ids=["unknown node", "one experience"])
+def test_a_strangers_aligned_links_are_refused_in_one_line(runner, cli_app, walk_copy, links):
+    m = load_map(walk_copy, images=True)
+    m.arrays["aligned_links"] = np.array(links, np.int64)
+    m.arrays["aligned_confidence"] = np.full(len(links), 0.99, np.float32)
+    store.save_map(m, walk_copy, overwrite=True)
+    before = walk_copy.read_bytes()
+    for command in (["info", str(walk_copy)], ["localize", str(walk_copy), str(dataset("corridor") / "query")]):
+        assert_error(runner.invoke(cli_app, command), "aligned link", "rebuild the map")
+    assert walk_copy.read_bytes() == before
+
+
 def test_foreign_png(runner, cli_app, tmp_path, two_frames):
     cv2.imwrite(str(tmp_path / "pic.png"), two_frames[0])
     assert_error(runner.invoke(cli_app, ["info", str(tmp_path / "pic.png")]), "not a topomap map file")
