@@ -38,6 +38,7 @@ def test_aligned_links_join_places_not_edges(two_runs):
     m.set_aligned_links([(4, 1, 0.97), (3, 0, 0.96)])
     assert m.aligned_links() == [(0, 3, pytest.approx(0.96)), (1, 4, pytest.approx(0.97))]
     assert m.place_ids()[4] == 1 and m.place_ids()[3] == 0 and m.place_ids()[5] == 5
+    assert m.linked(4) == [1, 3, 5] and m.neighbours(4) == [3, 5]  # the calibration's neighbourhoods
     assert m.experiences()[1]["aligned"] == {0: 2} and m.experiences()[1]["links"] == {}
     assert len(m.components()) == 2  # the graph (what the planner drives along) is unchanged
     assert Planner(m).route(0, 2).nodes == [0, 1, 2]

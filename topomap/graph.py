@@ -163,6 +163,12 @@ class TopoMap:
         self.node(node_id)
         return sorted({e.b if e.a == node_id else e.a for e in self.edges.values() if node_id in (e.a, e.b)})
 
+    def linked(self, node_id: int) -> list[int]:
+        """The node's graph neighbours and the nodes of other experiences aligned to it (the same
+        place, :meth:`aligned_links`): everything localization counts as the node's neighbourhood."""
+        twins = {b if a == node_id else a for a, b, _ in self.aligned_links() if node_id in (a, b)}
+        return sorted(set(self.neighbours(node_id)) | twins)
+
     def node_of_frame(self, source: str) -> int | None:
         """The node representing the frame with this file name (``None`` if skipped or unknown)."""
         for f in self.frames:

@@ -90,7 +90,7 @@ def keyframe_image(tmap: TopoMap, node_id: int) -> np.ndarray | None:
 
 
 def _closed_neighbourhood(tmap: TopoMap, node_id: int) -> set[int]:
-    return {node_id, *tmap.neighbours(node_id)}
+    return {node_id, *tmap.linked(node_id)}
 
 
 def viewpoint_change(image: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:
@@ -123,7 +123,7 @@ def _overlapping(loc: Localizer) -> bool:
 def _within_hops(tmap: TopoMap, node_id: int, hops: int) -> set[int]:
     seen, frontier = {node_id}, {node_id}
     for _ in range(hops):
-        frontier = {m for n in frontier for m in tmap.neighbours(n)} - seen
+        frontier = {m for n in frontier for m in tmap.linked(n)} - seen
         seen |= frontier
     return seen
 
@@ -135,7 +135,7 @@ def single_samples(loc: Localizer, node_ids: list[int], rng: np.random.Generator
     overlapping = _overlapping(loc)
     for nid in node_ids:
         image = keyframe_image(tmap, nid)
-        neighbours = set(tmap.neighbours(nid))
+        neighbours = set(tmap.linked(nid))  # an aligned twin in another experience is the same place
         if image is None or not neighbours:
             continue
         near = neighbours | {nid}
