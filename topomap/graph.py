@@ -231,11 +231,11 @@ class TopoMap:
                 or conf.shape != (len(pairs),) or conf.dtype.kind != "f" or not np.all((conf >= 0) & (conf <= 1))):
             raise MapFormatError(f"the map's aligned links are malformed; {fix}")
         out = []
-        for (a, b), c in zip(pairs.tolist(), conf.tolist()):
+        for (a, b), c in zip(pairs.tolist(), conf.tolist()):  # O(links): no pass over the nodes
             na, nb = self.nodes.get(a), self.nodes.get(b)
             if na is None or nb is None or na.sequence == nb.sequence:
                 raise MapFormatError(f"the map's aligned link {a}-{b} does not join nodes of two experiences; {fix}")
-            out.append((min(a, b), max(a, b), float(c)))
+            out.append((min(a, b), max(a, b), c))
         return out
 
     def set_aligned_links(self, links: list[tuple[int, int, float]]) -> None:
