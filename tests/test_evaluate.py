@@ -91,6 +91,17 @@ def test_a_node_counts_when_it_represents_any_matching_frame():
     assert evaluate([("q.png", loc([2, 1], 0.9))], truth, m).recall_at == {1: 0.0, 5: 1.0, 10: 1.0}
 
 
+def test_a_node_of_another_experience_counts_when_aligned_to_a_right_node():
+    m = tiny_map()
+    m.add_node(Node(10, 1, 20, "w0.png", Features.empty("orb", (64, 48)), np.zeros((4, 4), np.uint8)))
+    m.add_node(Node(11, 1, 21, "w1.png", Features.empty("orb", (64, 48)), np.zeros((4, 4), np.uint8)))
+    truth = GroundTruth({"q.png": frozenset({"r3.png"})})  # node 1's frame; the winter run is not in it
+    assert evaluate([("q.png", loc([10, 1], 0.9))], truth, m).recall_at[1] == 0.0
+    m.set_aligned_links([(10, 1, 0.97)])  # node 10 shows node 1's place; node 11 shows none of the truth
+    assert evaluate([("q.png", loc([10, 1], 0.9))], truth, m).recall_at[1] == 1.0
+    assert evaluate([("q.png", loc([11, 1], 0.9))], truth, m).recall_at == {1: 0.0, 5: 1.0, 10: 1.0}
+
+
 def test_queries_without_a_true_match():
     m = tiny_map()
     truth = GroundTruth({"a.png": frozenset({"r0.png"}), "b.png": frozenset(), "c.png": frozenset({"r4.png"})})

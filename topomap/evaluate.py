@@ -101,9 +101,15 @@ def evaluate(results: Sequence[tuple[str, Localization]], truth: GroundTruth, tm
     for f in tmap.frames:
         if f.node is not None:
             node_frames[f.node].add(f.source)
+    # a node of another experience joined to a right node shows the same place (TopoMap.place_ids)
+    place = tmap.place_ids()
+    members: dict[int, set[int]] = {}
+    for n, p in place.items():
+        members.setdefault(p, set()).add(n)
     outcomes = []
     for q, loc in results:
         good = truth.correct_nodes(q, node_frames) if q in truth else set()
+        good = good.union(*(members[place[n]] for n in good))
         ranks = [i + 1 for i, c in enumerate(loc.candidates) if c.node in good]  # candidates[0] is the answer
         outcomes.append(QueryOutcome(q, loc.node, float(loc.confidence), loc.status.value, loc.node in good,
                                      ranks[0] if ranks else 0, bool(good)))
