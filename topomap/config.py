@@ -247,6 +247,9 @@ class LocalizeConfig:
     elsewhere_state: bool = True
     verified_in_map: float = 0.3  # P(best node verifies | in the map), cautious
     verified_elsewhere: float = 0.01  # P(best node verifies | elsewhere): perceptual aliasing
+    # ... with at least this many inliers: below it a verification is no evidence either way (chance
+    # alignments with a look-alike place reach 15-19 inliers; docs/localization.md has the figures)
+    elsewhere_min_inliers: int = 25
     # Appearance-only maps weigh "in the map" against "elsewhere" by how well each frame follows the
     # motion model (SequenceLocalizer); one frame moves the odds by at most this factor.
     max_frame_ratio: float = 10.0
@@ -275,6 +278,8 @@ class LocalizeConfig:
                      "enter_probability"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise ConfigError(f"{name} must lie in [0, 1)")
+        if self.elsewhere_min_inliers < 0:
+            raise ConfigError("elsewhere_min_inliers must be >= 0")
         if not 0.0 < self.verified_elsewhere < self.verified_in_map < 1.0:
             raise ConfigError("need 0 < verified_elsewhere < verified_in_map < 1")
         if self.recent_frames < 0 or not self.recent_min_spread > 0:

@@ -631,9 +631,13 @@ class SequenceLocalizer:
             ratio = float(np.clip(prior.sum(axis=1) @ lik / max(lik.mean(), 1e-300), 1.0 / cfg.max_frame_ratio,
                                   cfg.max_frame_ratio))
         elif len(q.features) >= MIN_FEATURES_FOR_BOW and best in checks:
-            ok = checks[best].verified
+            v = checks[best]
             r_in, r_out = cfg.verified_in_map, cfg.verified_elsewhere
-            ratio = r_in / r_out if ok else (1.0 - r_in) / (1.0 - r_out)
+            if not v.verified:
+                ratio = (1.0 - r_in) / (1.0 - r_out)
+            elif v.inliers >= cfg.elsewhere_min_inliers:
+                ratio = r_in / r_out
+            # else: a verification at the level chance alignments of a look-alike place reach says nothing
         if self._tells_elsewhere and ratio is not None:
             e = e / (e + (1.0 - e) * ratio)
         self.elsewhere = e
