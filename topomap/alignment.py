@@ -5,9 +5,9 @@ experience by verified loop closures where features match. Where only appearance
 appearance-only map, or features that die in the dark — the keyframes of the new experience are run,
 in their order and in reverse, through the sequence filter (:class:`~topomap.localize.SequenceLocalizer`)
 over the map's *other* experiences, and each keyframe whose filtered answer reaches
-``BuildConfig.align_min_confidence`` in either pass is linked to the node answered (the more
-confident pass's): SeqSLAM's idea (a sequence of
-frames is recognised where a single one is not) with the filter's probability as the criterion.
+``BuildConfig.align_min_confidence`` in either pass is linked to the node answered (by the more
+confident pass): SeqSLAM's idea — a sequence of frames is recognised where a single one is not —
+with the filter's probability as the criterion.
 
 Links are kept apart from the edges (:meth:`TopoMap.aligned_links`): they say "same place" to
 localization, not "servo from here to there" to the planner — nothing verified the geometry.
@@ -16,6 +16,7 @@ localization, not "servo from here to there" to the planner — nothing verified
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import numpy as np
 
@@ -34,9 +35,11 @@ QUALITY_SAMPLE = 60
 
 
 def align_experience(tmap: TopoMap, new_ids: list[int], min_confidence: float,
-                     config: LocalizeConfig | None = None, seed: int = 0) -> list[tuple[int, int, float]]:
+                     config: LocalizeConfig | None = None, seed: int = 0,
+                     on_progress: Callable[[int, int], None] | None = None) -> list[tuple[int, int, float]]:
     """Aligned links ``(new node, earlier node, confidence)`` from the keyframes ``new_ids`` (one
     experience, in build order) to the map's other nodes; the map itself is not changed.
+    ``on_progress(done, total)`` after each keyframe of the two passes.
 
     A keyframe already joined to another experience by an edge (a verified loop closure) gets no
     link. Without keyframe images (maps built with ``--no-images``) nothing is aligned."""
@@ -55,12 +58,16 @@ def align_experience(tmap: TopoMap, new_ids: list[int], min_confidence: float,
     order = sorted(new)
     exclude = loc.rows_of(order)
     best: dict[int, tuple[float, int]] = {}
+    done = 0
     for run in (order, order[::-1]):
         filt = SequenceLocalizer(loc)
         for nid in run:  # images decoded as they come: memory does not grow with the run
             r = filt.update_query(_node_query(loc, tmap, nid, keyframe_image(tmap, nid)), exclude_rows=exclude)
             if r.node not in new and r.confidence > best.get(nid, (-1.0, -1))[0]:
                 best[nid] = (float(r.confidence), int(r.node))
+            done += 1
+            if on_progress is not None:
+                on_progress(done, 2 * len(order))
     return [(nid, old, conf) for nid, (conf, old) in sorted(best.items())
             if conf >= min_confidence and nid not in joined]
 

@@ -2,7 +2,8 @@
 
 The build reads as hloc's pipelines do, one stage after the other, each a plain function:
 sources (:func:`_frame_tasks`) -> features (:func:`prepare_frame`, per frame) -> keyframes
-(:func:`_select_keyframes`) -> index (:func:`build_index`) -> loops (:func:`_close_loops`); the
+(:func:`_select_keyframes`) -> index (:func:`build_index`) -> loops (:func:`_close_loops`) ->
+alignment of an appended experience (:func:`topomap.alignment.align_experience`) -> calibration; the
 store (``topomap.store``) writes the result. The per-frame and per-pair work is pure and goes to an
 :class:`~topomap.parallel.Executor` (in-process, a process pool or Dask), which hands results back
 in order: the map is the same at any worker count.
@@ -76,7 +77,7 @@ MIN_INDEX_DESCRIPTORS = 64
 
 @dataclass(frozen=True)
 class BuildProgress:
-    """Reported to ``on_progress`` during a build. ``stage``: ``frames`` | ``index`` | ``loops`` | ``calibrate``."""
+    """Reported to ``on_progress`` during a build. ``stage``: ``frames`` | ``index`` | ``loops`` | ``align`` (``--append``) | ``calibrate``."""
 
     stage: str
     done: int
@@ -430,7 +431,8 @@ def build_map(
     if base is not None and config.align_min_confidence is not None:
         from topomap.alignment import align_experience  # imports the localizer: only an --append needs it
 
-        links = align_experience(tmap, new_ids, config.align_min_confidence, seed=config.seed)
+        links = align_experience(tmap, new_ids, config.align_min_confidence, seed=config.seed,
+                                 on_progress=lambda done, total: _report(on_progress, "align", done, total, tmap))
         tmap.set_aligned_links(tmap.aligned_links() + links)
         aligned = len(links)
     annotate_edges(tmap, executor=executor)  # the keyframe pairs' geometry, read by the navigator
