@@ -539,7 +539,6 @@ class SequenceLocalizer:
     def __init__(self, localizer: Localizer):
         self.loc = localizer
         cfg = localizer.config
-        n = len(localizer.node_ids)
         steps = int(round(cfg.max_speed_nodes / cfg.speed_step_nodes))
         self.speeds = np.arange(-steps, steps + 1) * cfg.speed_step_nodes  # [nodes/frame]
         self._moves = [_chain_shift(localizer.map, localizer.node_ids, v) for v in self.speeds]
