@@ -86,7 +86,8 @@ DESCRIPTORS = {
     "auto": f"fused when keyframes hold >= {MIN_FEATURES_FOR_BOW} features and the map has an index, else hog",
     "fused": "bag-of-words + gradient orientations (HOG) + patch-normalised thumbnail",
     "bow": "bag-of-words of local features (needs the map's index)",
-    "hog": "whole-image gradient orientations (survive light and season changes; works where keypoints fail)",
+    "hog": "whole-image gradient orientations (survive light and season changes; works where keypoints fail); "
+           "on frames noisier or darker than the map's keyframes the thumbnail is blended in",
     "thumbnail": "patch-normalised thumbnail (SeqSLAM's whole-image descriptor)",
 }
 
@@ -221,10 +222,14 @@ class Localizer:
         desc_meta = tmap.meta.get("descriptor") or {}
         self.descriptor_size = tuple(desc_meta.get("size", THUMBNAIL_SIZE))
         self.descriptor_patch = int(desc_meta.get("patch", THUMBNAIL_PATCH))
-        if self.use_thumbnail:
+        have_descriptors = all(tmap.nodes[int(n)].descriptor is not None for n in self.node_ids)
+        if self.use_thumbnail and not have_descriptors:
             missing = [int(n) for n in self.node_ids if tmap.nodes[int(n)].descriptor is None]
-            if missing:
-                raise IndexMissingError(f"nodes {missing[:5]} have no whole-image descriptor; rebuild the map")
+            raise IndexMissingError(f"nodes {missing[:5]} have no whole-image descriptor; rebuild the map")
+        # HOG's gradients drown in the noise of a dark frame where the patch-normalised thumbnail (SeqSLAM's
+        # descriptor) survives: on such frames the filter blends it in by the frame's degradation
+        self.blend_thumbnail = mode == "hog" and have_descriptors
+        if self.use_thumbnail or self.blend_thumbnail:
             self._descriptors = np.stack([tmap.nodes[int(n)].descriptor for n in self.node_ids]).astype(np.float32)
         self._desc_stats: tuple[np.ndarray, np.ndarray] | None = None  # computed on first use (sequence mode)
         self._adjacency = _adjacency(tmap, self.node_ids, self._row)
@@ -251,7 +256,8 @@ class Localizer:
         gray = to_gray_u8(image)
         work = to_working_resolution(gray, self.map.working_size)
         feats = extract(work, self.map.config.features)  # verification needs them in every mode
-        desc = thumbnail_descriptor(work, self.descriptor_size, self.descriptor_patch) if self.use_thumbnail else np.zeros(0, np.float32)
+        desc = (thumbnail_descriptor(work, self.descriptor_size, self.descriptor_patch)
+                if self.use_thumbnail or self.blend_thumbnail else np.zeros(0, np.float32))
         g = None
         if self.use_hog:  # from the query's thumbnail, exactly as the nodes' were made at build time
             g = hog_descriptor(make_thumbnail(work, self.map.config.thumbnail_px), self.global_descriptors.size)
@@ -298,18 +304,34 @@ class Localizer:
             # corridor's sequence mode (see docs/localization.md)
             z = _robust_z(self.global_descriptors.similarity(g, rows).astype(np.float64))
             score += z if rows is None else _spread(z, rows, len(score))
-        if not self.use_thumbnail:
+        # hog: on a degraded frame the sequence filter's scores blend the thumbnail in (standardised per
+        # node it carries sequences where HOG dies; a single frame keeps HOG: unstandardised, the
+        # thumbnail is the weaker single-frame descriptor, docs/localization.md)
+        w = self.degradation(q) if self.blend_thumbnail and hub_correction else 0.0
+        if not self.use_thumbnail and w == 0.0:
             return score, (score.copy() if hub_correction else None)
-        d = sad(q.descriptor, self._descriptors if rows is None else self._descriptors[rows]).astype(np.float64)
+        desc = q.descriptor
+        if len(desc) != self._descriptors.shape[1]:  # prepared by a localizer that did not need it
+            desc = thumbnail_descriptor(q.image, self.descriptor_size, self.descriptor_patch)
+        d = sad(desc, self._descriptors if rows is None else self._descriptors[rows]).astype(np.float64)
         z = _robust_z(-d)
-        plain = score + (z if rows is None else _spread(z, rows, len(score)))
-        if not hub_correction:
-            return plain, None
-        if self._desc_stats is None:
-            self._desc_stats = _distance_statistics(self._descriptors)
-        mu, sd = self._desc_stats
-        z = _robust_z(-((d - mu) / sd if rows is None else (d - mu[rows]) / sd[rows]))
-        return plain, score + (z if rows is None else _spread(z, rows, len(score)))
+        thumb = z if rows is None else _spread(z, rows, len(score))
+        hub = None
+        if hub_correction:
+            if self._desc_stats is None:
+                self._desc_stats = _distance_statistics(self._descriptors)
+            mu, sd = self._desc_stats
+            z = _robust_z(-((d - mu) / sd if rows is None else (d - mu[rows]) / sd[rows]))
+            hub = z if rows is None else _spread(z, rows, len(score))
+        if not self.use_thumbnail:  # hog, the thumbnail weighted in by the frame's degradation
+            return score, (1.0 - w) * score + w * hub
+        return score + thumb, (None if hub is None else score + hub)
+
+    def degradation(self, q: Query) -> float:
+        """How much worse the frame is than the map's keyframes, in [0, 1): ``1 - 1 / (1 + low_snr +
+        contrast_loss + clipping)`` against :attr:`quality_reference` (0: like the keyframes)."""
+        ev = quality_evidence(q.quality or image_quality(q.image), self.quality_reference)
+        return 1.0 - 1.0 / (1.0 + ev["low_snr"] + ev["contrast_loss"] + ev["clipping"])
 
     def verify_candidates(self, q: Query, score: np.ndarray, k: int | None = None) -> dict[int, Verification]:
         """Geometric verification of the ``k`` best-scoring nodes: ``{row: Verification}``."""
@@ -607,7 +629,7 @@ class SequenceLocalizer:
         # (night, fog) says less, so its likelihood is flattened instead of pushing belief anywhere
         # (contrast lost and pixels clipped count too: an over-exposed frame keeps its noise level and
         # contrast but loses the texture of its bright half; docs/localization.md has the figures)
-        reliability = 1.0 / (1.0 + ev1["low_snr"] + ev1["contrast_loss"] + ev1["clipping"])
+        reliability = 1.0 - loc.degradation(q)
         # ... and the more degraded, the more each node is judged against its own recent scores
         obs = self._recent.debias(score, 1.0 - reliability)  # score itself, or a new array
         if len(ex):
