@@ -580,7 +580,8 @@ def _loop_candidates(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig) -> Ite
         pairs: list[tuple[int, int]] = []
         if len(node.features) >= cfg.match.min_inliers:
             near = _within_steps(seq_adj, nid, cfg.loop_min_separation)
-            scores = index.scores(node.features)
+            words = index.words_of_features(nid)  # stored at indexing: no need to quantise again
+            scores = index.scores(node.features, None if words is None else words.astype(np.int64))
             own = by_sequence[node.sequence]
             candidates = index.top_k(scores, cfg.loop_shortlist_k, near | (all_ids - own))
             if len(own) < len(all_ids):
