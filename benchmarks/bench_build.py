@@ -6,7 +6,8 @@ matching and RANSAC, the vocabulary and index, and loop closure. Printed per dat
 nodes, edges, the time of each, frames/s of each and the ratio build/baseline (1.0 = the build
 costs no more than decoding and extracting), plus where the build's time goes (frames stage =
 decode + extract + keyframing, index = vocabulary k-means + bag of words, loops = shortlist +
-verification) and the time to save the map file.
+verification, motion = the keyframe pairs' relative pose, calibrate = the self-supervised
+confidence calibration) and the time to save the map file.
 
 The build runs once per ``--workers`` value (default ``1`` and every core: the process pool
 ``topomap build`` uses by default, its start-up included in the time); baseline and builds alternate
@@ -38,6 +39,9 @@ from topomap.store import save_map
 
 SHARED = Path(os.environ.get("TOPOMAP_SHARED", Path(__file__).resolve().parents[1].parent / "shared"))
 
+#: The build's stages in order (``BuildProgress.stage``).
+STAGES = ("frames", "index", "loops", "motion", "calibrate")
+
 #: name -> (image source, camera file or None), relative to the datasets folder
 DATASETS = {
     "corridor": ("corridor/ref", None),
@@ -58,9 +62,22 @@ def baseline(paths: list[Path], config: BuildConfig) -> float:
     return time.perf_counter() - t0
 
 
-def timed_build(source: Path, config: BuildConfig, camera, workers: int) -> tuple[float, dict[str, float], object]:
+def _cpu_seconds(pids: list[int]) -> float:
+    """CPU seconds (user + system) the given processes have used so far (Linux ``/proc``; 0 elsewhere)."""
+    total = 0.0
+    for pid in pids:
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return total
+
+
+def timed_build(source: Path, config: BuildConfig, camera, workers: int) -> tuple[float, dict[str, float], object, dict]:
     """Seconds of ``build_map`` on ``workers`` (executor start-up included), the seconds spent in each
-    stage, and the map."""
+    stage, the map and the CPU seconds of the build (``driver``: this process, all its threads;
+    ``workers``: the pool's processes, from their start)."""
     marks: dict[str, float] = {}
 
     def on_progress(p: BuildProgress) -> None:
@@ -68,17 +85,18 @@ def timed_build(source: Path, config: BuildConfig, camera, workers: int) -> tupl
         marks.setdefault(f"{p.stage}_start", now)
         marks[f"{p.stage}_end"] = now
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     with make_executor(workers) as ex:
         m = build_map(source, config, camera, on_progress=on_progress, executor=ex)
+        cpu = {"driver": time.process_time() - c0, "workers": _cpu_seconds(getattr(ex, "worker_pids", list)())}
     t1 = time.perf_counter()
     # each stage runs from the end of the previous one to its own last report
     stages, prev = {}, t0
-    for stage in ("frames", "index", "loops"):
+    for stage in STAGES:
         if f"{stage}_end" in marks:
             stages[stage] = marks[f"{stage}_end"] - prev
             prev = marks[f"{stage}_end"]
-    return t1 - t0, stages, m
+    return t1 - t0, stages, m, cpu
 
 
 def run(name: str, kind: str, repeat: int, workers: list[int]) -> list[dict]:
@@ -98,12 +116,12 @@ def run(name: str, kind: str, repeat: int, workers: list[int]) -> list[dict]:
     for _ in range(repeat):  # alternate baseline and builds: the same load for each
         t_base = min(t_base, baseline(paths, config))
         for w in workers:
-            t, stages, m = timed_build(source, config, camera, w)
+            t, stages, m, cpu = timed_build(source, config, camera, w)
             if w not in best or t < best[w][0]:
-                best[w] = (t, stages, m)
+                best[w] = (t, stages, m, cpu)
     rows = []
     for w in workers:
-        t_build, stages, m = best[w]
+        t_build, stages, m, cpu = best[w]
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()
             save_map(m, Path(tmp) / "m.topomap")
@@ -113,7 +131,7 @@ def run(name: str, kind: str, repeat: int, workers: list[int]) -> list[dict]:
             "dataset": name, "workers": w, "frames": n, "nodes": len(m.nodes), "edges": len(m.edges),
             "loops": m.edges_by_kind()["loop"], "base_s": t_base, "build_s": t_build,
             "base_fps": n / t_base, "build_fps": n / t_build, "ratio": t_base / t_build,
-            "stages": stages, "save_s": t_save, "size": m.working_size,
+            "stages": stages, "save_s": t_save, "size": m.working_size, "cpu": cpu,
         })
     return rows
 
@@ -150,12 +168,22 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['base_s']:>10.2f}{r['build_s']:>11.2f}{r['base_fps']:>10.1f}{r['build_fps']:>11.1f}{r['ratio']:>12.2f}")
     print("  build/base: frames/s of the build over frames/s of the baseline (> 1: faster than decoding and extracting on one core)")
     print()
+    print("CPU seconds of the build (a shared machine stretches the wall time, not these): driver = this process,")
+    print("workers = the pool's processes; base = the baseline loop's wall time (one core)")
+    print(f"{'dataset':<10}{'workers':>8}{'driver':>9}{'workers':>9}{'total':>9}{'base':>9}{'base/total':>12}")
+    for r in rows:
+        c = r["cpu"]
+        total = c["driver"] + c["workers"]
+        print(f"{r['dataset']:<10}{r['workers']:>8}{c['driver']:>9.2f}{c['workers']:>9.2f}{total:>9.2f}{r['base_s']:>9.2f}"
+              f"{r['base_s'] / total:>12.2f}")
+    print()
     print("Where the build's time goes [s] (frames = decode + extract + keyframing; index = vocabulary + BoW;")
-    print("loops = shortlist + geometric verification); save = writing the map file (not in build_map)")
-    print(f"{'dataset':<10}{'workers':>8}{'frames':>9}{'index':>9}{'loops':>9}{'save':>9}")
+    print("loops = shortlist + geometric verification; motion = the keyframe pairs' relative pose; calibrate =")
+    print("self-supervised confidence calibration, maps of 50 nodes or more); save = writing the map file (not in build_map)")
+    print(f"{'dataset':<10}{'workers':>8}" + "".join(f"{s:>10}" for s in STAGES) + f"{'save':>9}")
     for r in rows:
         s = r["stages"]
-        print(f"{r['dataset']:<10}{r['workers']:>8}{s.get('frames', 0):>9.2f}{s.get('index', 0):>9.2f}{s.get('loops', 0):>9.2f}{r['save_s']:>9.2f}")
+        print(f"{r['dataset']:<10}{r['workers']:>8}" + "".join(f"{s.get(k, 0):>10.2f}" for k in STAGES) + f"{r['save_s']:>9.2f}")
     return 0
 
 

@@ -127,7 +127,8 @@ def build(
         with _progress_bar(as_json) as bar:
             tasks = {"frames": bar.add_task("frames", total=None, info="", unit="frames")}
             labels = {"index": ("vocabulary", "steps"), "loops": ("loop closure", "nodes"),
-                      "align": ("alignment", "keyframes"), "calibrate": ("calibration", "steps")}
+                      "align": ("alignment", "keyframes"), "motion": ("keyframe-pair geometry", "steps"),
+                      "calibrate": ("calibration", "steps")}
 
             def on_progress(p: BuildProgress) -> None:
                 if p.stage not in tasks:

@@ -37,6 +37,19 @@ def test_build_stores_both_directions_of_every_edge(walk):
                 assert stored.to_json() == fresh.to_json()
 
 
+def test_the_build_verifies_each_edge_once_more_not_twice(tmp_path, monkeypatch):
+    """The build's own verification of an edge (keyframing, loop closure) is one of its directions;
+    only the other is verified again for the pair's geometry (the records equal fresh ones, above)."""
+    import topomap.relative_motion as rm
+
+    calls = []
+    real = rm.verify
+    monkeypatch.setattr(rm, "verify", lambda *a, **k: calls.append(1) or real(*a, **k))
+    write_out_and_back(tmp_path)
+    m = build_map(tmp_path, FAST)
+    assert m.edges_by_kind()["loop"] > 0 and len(calls) == len(m.edges)
+
+
 def test_the_map_file_keeps_them_and_the_navigator_reads_them(walk):
     m, path = walk
     back = load_map(path)

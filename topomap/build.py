@@ -77,7 +77,8 @@ MIN_INDEX_DESCRIPTORS = 64
 
 @dataclass(frozen=True)
 class BuildProgress:
-    """Reported to ``on_progress`` during a build. ``stage``: ``frames`` | ``index`` | ``loops`` | ``align`` (``--append``) | ``calibrate``."""
+    """Reported to ``on_progress`` during a build. ``stage``: ``frames`` | ``index`` | ``loops`` |
+    ``align`` (``--append``) | ``motion`` (the keyframe pairs' geometry) | ``calibrate``."""
 
     stage: str
     done: int
@@ -176,10 +177,9 @@ def _frame_tasks(seq: ImageSequence, work_size: tuple[int, int], config: BuildCo
 
 # ============================================================================= stage: keyframes
 def _verify_pair(a: Features, b: Features, config: MatchConfig) -> Verification:
-    """Geometric verification of one pair (pure; a task of the keyframe and loop stages). The result
-    drops the fundamental matrix: no stage keeps it, and it would only travel back."""
-    v = verify(a, b, config)
-    return replace(v, F=None)
+    """Geometric verification of one pair (pure; a task of the keyframe and loop stages). The edges'
+    verifications are kept until the motion stage, which reuses them (:func:`annotate_edges`)."""
+    return verify(a, b, config)
 
 
 def _verify_task(args: tuple[Features, Features, MatchConfig]) -> Verification:
@@ -347,6 +347,7 @@ def build_map(
     total = len(seq)
     skipped: list[tuple[str, str]] = []
     input_size: list[tuple[int, int] | None] = [None]
+    verified: dict[tuple[int, int], Verification] = {}  # (x, y): verify(x, y) of the new edges, for the motion stage
 
     # the first readable frame (read here) fixes the working size of a new map
     head_frames, first = _first_readable(iter(seq), config)
@@ -381,6 +382,8 @@ def build_map(
             v = link
             tmap.add_edge(Edge(prev_node, nid, EdgeKind.SEQUENTIAL, v.inliers if v else 0,
                                v.similarity if v else 0.0, v.flow_px if v else 0.0))
+            if v is not None:
+                verified[(prev_node, nid)] = v
         return nid
 
     def on_frame(f: PreparedFrame) -> None:
@@ -426,7 +429,7 @@ def build_map(
             log.warning("%s was taught in another world than the map's first run; the map keeps the first", seq.source)
     new_ids = [n for n in sorted(tmap.nodes) if n >= first_node]
     build_index(tmap, on_progress, executor=executor)
-    loops = _close_loops(tmap, new_ids, config, on_progress, executor=executor)
+    loops = _close_loops(tmap, new_ids, config, on_progress, executor=executor, verified=verified)
     aligned = 0
     if base is not None and config.align_min_confidence is not None:
         from topomap.alignment import align_experience  # imports the localizer: only an --append needs it
@@ -435,8 +438,11 @@ def build_map(
                                  on_progress=lambda done, total: _report(on_progress, "align", done, total, tmap))
         tmap.set_aligned_links(tmap.aligned_links() + links)
         aligned = len(links)
-    annotate_edges(tmap, executor=executor)  # the keyframe pairs' geometry, read by the navigator
-    calibrate(tmap, on_progress)
+    _report(on_progress, "motion", 0, 1, tmap)
+    annotate_edges(tmap, executor=executor, verified=verified)  # the keyframe pairs' geometry, read by the navigator
+    verified.clear()
+    _report(on_progress, "motion", 1, 1, tmap)
+    calibrate(tmap, on_progress, executor=executor)
     tmap.sequences.append(
         {
             "source": str(seq.source),
@@ -536,17 +542,18 @@ def build_index(tmap: TopoMap, on_progress: Callable[[BuildProgress], None] | No
     return tmap.index
 
 
-def calibrate(tmap: TopoMap, on_progress: Callable[[BuildProgress], None] | None = None) -> Calibration | None:
-    """Fit the map's localization calibration (:func:`topomap.self_supervision.calibrate_map`) when its
-    config asks for one; a map that cannot be calibrated keeps none (logged) and localizes with raw
-    confidences."""
+def calibrate(tmap: TopoMap, on_progress: Callable[[BuildProgress], None] | None = None, *,
+              executor: Executor | None = None) -> Calibration | None:
+    """Fit the map's localization calibration (:func:`topomap.self_supervision.calibrate_map`, its
+    queries on ``executor``) when its config asks for one; a map that cannot be calibrated keeps none
+    (logged) and localizes with raw confidences."""
     cfg = tmap.config.calibration
     tmap.meta.pop(CALIBRATION_KEY, None)  # a calibration of the map before this build is stale
     if not cfg.enabled or len(tmap.nodes) < cfg.min_nodes:
         return None
     _report(on_progress, "calibrate", 0, 1, tmap)
     try:
-        cal = calibrate_map(tmap, queries=cfg.queries, seed=tmap.config.seed)
+        cal = calibrate_map(tmap, queries=cfg.queries, seed=tmap.config.seed, executor=executor)
     except CalibrationError as e:
         log.warning("%s", e)
         return None
@@ -583,7 +590,8 @@ def _loop_candidates(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig) -> Ite
         pairs: list[tuple[int, int]] = []
         if len(node.features) >= cfg.match.min_inliers:
             near = _within_steps(seq_adj, nid, cfg.loop_min_separation)
-            scores = index.scores(node.features)
+            words = index.words_of_features(nid)  # stored at indexing: no need to quantise again
+            scores = index.scores(node.features, None if words is None else words.astype(np.int64))
             own = by_sequence[node.sequence]
             candidates = index.top_k(scores, cfg.loop_shortlist_k, near | (all_ids - own))
             if len(own) < len(all_ids):
@@ -598,10 +606,11 @@ def _loop_candidates(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig) -> Ite
 
 
 def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progress, *,
-                 executor: Executor | None = None) -> int:
+                 executor: Executor | None = None, verified: dict | None = None) -> int:
     """The loops stage: verify the appearance shortlist of every new node (pairs in parallel on
-    ``executor``, results in order); add ``loop`` edges. Returns how many. Shortlists are made
-    as the verifications ask for work (a few nodes ahead), not all at once."""
+    ``executor``, results in order); add ``loop`` edges, their verifications to ``verified``
+    (``(x, y): verify(x, y)``). Returns how many. Shortlists are made as the verifications ask for
+    work (a few nodes ahead), not all at once."""
     if tmap.index is None or len(tmap.nodes) < 3:
         return 0
     executor = executor or InlineExecutor()
@@ -633,6 +642,8 @@ def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progres
         _, a, b, last = order.popleft()
         if v.inliers >= cfg.loop_min_inliers and v.inlier_ratio >= cfg.loop_min_inlier_ratio:
             tmap.add_edge(Edge(a, b, EdgeKind.LOOP, v.inliers, v.similarity, v.flow_px))
+            if verified is not None:
+                verified[(a, b)] = v
             added += 1
         if last:
             node_done()

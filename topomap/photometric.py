@@ -100,7 +100,7 @@ def apply_photometric(image: np.ndarray, change: Photometric, rng: np.random.Gen
             lin = lin * gain * np.float32(np.mean(change.white_balance_rgb))
         if change.vignetting > 0:
             h, w = img.shape[:2]
-            yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+            yy, xx = np.arange(h, dtype=np.float32)[:, None], np.arange(w, dtype=np.float32)[None, :]  # broadcast, not two full grids
             r2 = ((xx - (w - 1) / 2) ** 2 + (yy - (h - 1) / 2) ** 2) / (((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2)
             fall = 1.0 - np.float32(change.vignetting) * r2  # cos^4-like falloff, 1 at the centre
             lin = lin * (fall[..., None] if img.ndim == 3 else fall)

@@ -35,7 +35,7 @@ from topomap.camera import CameraIntrinsics
 from topomap.config import MatchConfig, RelativePoseConfig, to_dict
 from topomap.features import Features
 from topomap.graph import Edge, TopoMap
-from topomap.matching import verify
+from topomap.matching import Verification, verify
 from topomap.parallel import Executor
 from topomap.servo.homography import wall_normals
 from topomap.servo.pose import PoseStatus
@@ -97,9 +97,10 @@ def _number(x) -> float | None:
 
 
 def pair_motion(fa: Features, fb: Features, camera: CameraIntrinsics, match: MatchConfig,
-                geometry: RelativePoseConfig) -> PairMotion | None:
-    """Keyframe A (features ``fa``) seen from keyframe B; None when they do not verify."""
-    v = verify(fa, fb, match)
+                geometry: RelativePoseConfig, verification: Verification | None = None) -> PairMotion | None:
+    """Keyframe A (features ``fa``) seen from keyframe B; None when they do not verify.
+    ``verification``: ``verify(fa, fb, match)`` when already known (the build verified its edges)."""
+    v = verify(fa, fb, match) if verification is None else verification
     if not v.verified:
         return None
     cur, dst = fa.keypoints[v.inlier_matches.ia], fb.keypoints[v.inlier_matches.ib]
@@ -113,8 +114,9 @@ def pair_motion(fa: Features, fb: Features, camera: CameraIntrinsics, match: Mat
 
 
 def _edge_task(args) -> dict:
-    fa, fb, camera, match, geometry = args
-    ab, ba = pair_motion(fa, fb, camera, match, geometry), pair_motion(fb, fa, camera, match, geometry)
+    fa, fb, camera, match, geometry, v_ab, v_ba = args
+    ab = pair_motion(fa, fb, camera, match, geometry, v_ab)
+    ba = pair_motion(fb, fa, camera, match, geometry, v_ba)
     return {"version": VERSION, "a_in_b": ab.to_json() if ab else None, "b_in_a": ba.to_json() if ba else None}
 
 
@@ -123,9 +125,12 @@ def _stamp(geometry: RelativePoseConfig) -> dict:
 
 
 def annotate_edges(tmap: TopoMap, geometry: RelativePoseConfig | None = None, *,
-                   executor: Executor | None = None) -> int:
+                   executor: Executor | None = None, verified: dict[tuple[int, int], Verification] | None = None) -> int:
     """Compute ``relative_motion`` of every edge without one (of every edge when the map's were
-    computed with another configuration), on ``executor`` if given. Returns how many were computed."""
+    computed with another configuration), on ``executor`` if given. ``verified``: ``{(x, y):
+    verify(features of x, features of y, map's match config)}`` already computed (by the build), reused
+    for the direction "x seen from y". Returns how many were computed."""
+    verified = verified or {}
     geometry = geometry or RelativePoseConfig()
     stamp = _stamp(geometry)
     same = isinstance(tmap.meta.get(META_KEY), dict) and tmap.meta[META_KEY].get("geometry") == stamp
@@ -133,7 +138,8 @@ def annotate_edges(tmap: TopoMap, geometry: RelativePoseConfig | None = None, *,
 
     def items() -> Iterator[tuple]:
         for a, b in todo:
-            yield (tmap.nodes[a].features, tmap.nodes[b].features, tmap.camera, tmap.config.match, geometry)
+            yield (tmap.nodes[a].features, tmap.nodes[b].features, tmap.camera, tmap.config.match, geometry,
+                   verified.get((a, b)), verified.get((b, a)))
 
     results = executor.map(_edge_task, items()) if executor is not None else map(_edge_task, items())
     for key, motion in zip(todo, results):

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -35,9 +36,11 @@ from topomap.errors import CalibrationError
 from topomap.graph import TopoMap
 from topomap.images import decode_image
 from topomap.localize import Localizer
+from topomap.parallel import Executor
 from topomap.photometric import apply_photometric, random_photometric
 
-__all__ = ["calibrate_map", "CalibrationSamples", "single_samples", "keyframe_image", "viewpoint_change"]
+__all__ = ["calibrate_map", "CalibrationSamples", "single_samples", "keyframe_samples", "keyframe_rng", "keyframe_image",
+           "viewpoint_change"]
 
 log = logging.getLogger(__name__)
 
@@ -128,39 +131,94 @@ def _within_hops(tmap: TopoMap, node_id: int, hops: int) -> set[int]:
     return seen
 
 
-def single_samples(loc: Localizer, node_ids: list[int], rng: np.random.Generator) -> CalibrationSamples:
-    """Nearby, left-out, aliased and foreign queries of the given keyframes (see the module docstring)."""
+def keyframe_rng(seed: int, node_id: int) -> np.random.Generator:
+    """The random stream of one keyframe's queries: seeded by the map's seed and the node id, so a
+    keyframe's samples are the same whichever worker makes them and whichever others are drawn."""
+    return np.random.default_rng((int(seed), int(node_id)))
+
+
+def keyframe_samples(loc: Localizer, node_id: int, rng: np.random.Generator) -> list[tuple[dict, bool, str]]:
+    """The nearby, left-out, aliased and foreign queries of one keyframe (see the module docstring):
+    ``(evidence, right, kind)`` each; none when the keyframe has no image or no neighbour."""
     tmap = loc.map
-    out = CalibrationSamples(SINGLE_FEATURES)
-    overlapping = _overlapping(loc)
-    for nid in node_ids:
-        image = keyframe_image(tmap, nid)
-        neighbours = set(tmap.linked(nid))  # an aligned twin in another experience is the same place
-        if image is None or not neighbours:
-            continue
-        near = neighbours | {nid}
-        queries = [("nearby", _changed(image, rng, float(rng.random()), float(rng.uniform(0.0, MAX_VIEW))), set(), near)]
-        if overlapping:
-            queries.append(("left out", _changed(image, rng, float(rng.random()), 0.3), {nid}, neighbours))
-        queries += [
-            ("aliased", _changed(image, rng, float(rng.random()), 0.3), _within_hops(tmap, nid, ALIAS_HOPS), set()),
-            ("foreign", np.ascontiguousarray(_changed(image, rng, float(rng.random()), 0.3)[:, ::-1]), near, set()),
-        ]
-        for kind, img, exclude, right in queries:
-            a = loc.localize_query(loc.prepare(img), exclude=exclude)
-            out.add(a.evidence, a.node in right, kind)
+    image = keyframe_image(tmap, node_id)
+    neighbours = set(tmap.linked(node_id))  # an aligned twin in another experience is the same place
+    if image is None or not neighbours:
+        return []
+    near = neighbours | {node_id}
+    queries = [("nearby", _changed(image, rng, float(rng.random()), float(rng.uniform(0.0, MAX_VIEW))), set(), near)]
+    if _overlapping(loc):
+        queries.append(("left out", _changed(image, rng, float(rng.random()), 0.3), {node_id}, neighbours))
+    queries += [
+        ("aliased", _changed(image, rng, float(rng.random()), 0.3), _within_hops(tmap, node_id, ALIAS_HOPS), set()),
+        ("foreign", np.ascontiguousarray(_changed(image, rng, float(rng.random()), 0.3)[:, ::-1]), near, set()),
+    ]
+    out = []
+    for kind, img, exclude, right in queries:
+        a = loc.localize_query(loc.prepare(img), exclude=exclude)
+        out.append((a.evidence, a.node in right, kind))
     return out
 
 
-def calibrate_map(tmap: TopoMap, *, queries: int = 60, seed: int = 0, config: LocalizeConfig | None = None
-                  ) -> Calibration:
+def single_samples(loc: Localizer, node_ids: list[int], seed: int) -> CalibrationSamples:
+    """Nearby, left-out, aliased and foreign queries of the given keyframes, each keyframe's drawn
+    from :func:`keyframe_rng` (see the module docstring)."""
+    out = CalibrationSamples(SINGLE_FEATURES)
+    for nid in node_ids:
+        for evidence, right, kind in keyframe_samples(loc, nid, keyframe_rng(seed, nid)):
+            out.add(evidence, right, kind)
+    return out
+
+
+@dataclass(frozen=True)
+class _SamplesTask:
+    """One worker's share of the calibration queries: ``node_ids`` of ``map`` (which holds the images
+    of those keyframes only), localized with ``config`` against the keyframes' ``reference`` quality."""
+
+    map: TopoMap
+    config: LocalizeConfig
+    reference: dict
+    node_ids: tuple[int, ...]
+    seed: int
+
+
+def _samples_task(task: _SamplesTask) -> list[tuple[dict, bool, str]]:
+    loc = Localizer(task.map, task.config)
+    loc.quality_reference = task.reference
+    return [s for nid in task.node_ids for s in keyframe_samples(loc, nid, keyframe_rng(task.seed, nid))]
+
+
+def _without_images(tmap: TopoMap, keep: set[int]) -> TopoMap:
+    """A shallow copy of ``tmap`` for a worker: keyframe images only of ``keep``, no frame records
+    (localization reads neither; the images are most of a map's bytes)."""
+    nodes = {nid: n if nid in keep else dataclasses.replace(n, image=None, image_data=None) for nid, n in tmap.nodes.items()}
+    return dataclasses.replace(tmap, nodes=nodes, frames=[], sequences=[])
+
+
+def _parallel_samples(tmap: TopoMap, cfg: LocalizeConfig, reference: dict, node_ids: list[int], seed: int,
+                      executor: Executor) -> CalibrationSamples:
+    """:func:`single_samples` with the keyframes split over ``executor``'s workers (a few shares per
+    worker, so one slow worker does not hold up the rest); the samples come back in keyframe order."""
+    shares = [tuple(int(n) for n in part) for part in np.array_split(node_ids, min(len(node_ids), 2 * executor.workers))]
+    tasks = (_SamplesTask(_without_images(tmap, set(part)), cfg, reference, part, seed) for part in shares if part)
+    out = CalibrationSamples(SINGLE_FEATURES)
+    for samples in executor.map(_samples_task, tasks, window=len(shares)):
+        for evidence, right, kind in samples:
+            out.add(evidence, right, kind)
+    return out
+
+
+def calibrate_map(tmap: TopoMap, *, queries: int = 60, seed: int = 0, config: LocalizeConfig | None = None,
+                  executor: Executor | None = None) -> Calibration:
     """Fit the map's :class:`~topomap.calibration.Calibration` and store it in ``tmap.meta``.
 
-    ``queries`` keyframes (a seeded sample) give three or four samples each. Raises :class:`CalibrationError` when the map
-    has no keyframe images (``--no-images``) or too few nodes to learn from.
+    ``queries`` keyframes (a seeded sample) give three or four samples each; with ``executor`` their
+    queries run on its workers (the same calibration at any worker count). Raises
+    :class:`CalibrationError` when the map has no keyframe images (``--no-images``) or too few nodes
+    to learn from.
     """
-    cfg = config or LocalizeConfig()
-    loc = Localizer(tmap, dataclasses.replace(cfg, use_calibration=False))
+    cfg = dataclasses.replace(config or LocalizeConfig(), use_calibration=False)
+    loc = Localizer(tmap, cfg)
     rng = np.random.default_rng(seed)
     with_images = [n for n in sorted(tmap.nodes) if tmap.nodes[n].image is not None or tmap.nodes[n].image_data is not None]
     if len(with_images) < 10:
@@ -173,7 +231,10 @@ def calibrate_map(tmap: TopoMap, *, queries: int = 60, seed: int = 0, config: Lo
                  "clipped": float(np.median([q.clipped for q in qualities]))}
     # evidence of image quality is relative to the map's keyframes: install the reference first
     loc.quality_reference = reference
-    single = single_samples(loc, chosen, rng)
+    if executor is not None and executor.workers > 1:
+        single = _parallel_samples(tmap, cfg, reference, chosen, seed, executor)
+    else:
+        single = single_samples(loc, chosen, seed)
     if len(single) < 20 or single.y.all() or not single.y.any():
         raise CalibrationError(f"{NOT_CALIBRATED}: its keyframes gave {len(single)} usable samples, "
                            f"{int(single.y.sum())} of them right; need both right and wrong answers")
