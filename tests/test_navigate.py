@@ -417,3 +417,23 @@ def test_a_start_the_geometry_refuses_is_not_accepted(taught):
     for kwargs in ({"localizer_node": wrong}, {"switch_min_inliers": 100_000}):
         ev, _ = _start(taught, **kwargs)
         assert ev.kind is EventKind.FAILED and "could not localize" in ev.message, (kwargs, ev.message)
+
+
+def test_the_confirming_frame_comes_after_a_short_turn(taught):
+    """A scan step turning ~60 deg would take the candidate's place out of view before its second
+    look; the confirming frame comes after start_confirm_every_s instead, within one scan step."""
+    from topomap.config import NavigateConfig
+
+    cfg = NavigateConfig(scan_every_s=2.0)
+    ev, off = _start(taught, scan_every_s=cfg.scan_every_s)
+    assert ev.kind is EventKind.LOCALIZED and "confirmed by its geometry" in ev.message, ev.message
+    assert ev.time_s < cfg.scan_every_s and off < 1.0, (ev.time_s, off)
+
+
+@pytest.mark.parametrize("value", [0.0, -0.2])
+def test_start_confirm_turn_must_be_positive(value):
+    from topomap.config import NavigateConfig
+    from topomap.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="start_confirm_every_s"):
+        NavigateConfig(start_confirm_every_s=value)

@@ -642,12 +642,15 @@ class NavigateConfig:
     recover_far_confidence: float = 0.9
     # The start: an answer below LocalizeConfig.min_confidence is taken when it has at least
     # start_verified_confidence and the servo's geometry confirms it twice: its relative pose has at
-    # least switch_min_inliers inliers in the frame and again after the next scan step, and the two
-    # headings differ by the turn the two frames measure between them (within
+    # least switch_min_inliers inliers in the frame, verifies again (the match's min_inliers) after a
+    # turn of start_confirm_every_s, and the two headings differ by the turn the two frames measure (within
     # start_confirm_heading_deg; the disturbances make the commanded turn unknown). Chance inliers do
     # not close that loop; a calibrated 0.9 on one frame missed whole turns (held-out world 108).
     start_verified_confidence: float = 0.5
     start_confirm_heading_deg: float = 5.0
+    # The confirming frame comes after a shorter turn than a scan step: a full step (~20 deg with an
+    # uncompensated yaw disturbance) turned the candidate's view out of the image under changed light.
+    start_confirm_every_s: float = 0.2
     scan_turn_rps: float = 0.5  # turning rate while scanning for a place to localize [rad/s]
     scan_every_s: float = 0.6  # localize attempts while scanning [s]
     time_budget_base_s: float = 60.0  # the whole navigation may last this [s] ...
@@ -655,6 +658,7 @@ class NavigateConfig:
 
     def __post_init__(self) -> None:
         for name in ("control_period_s", "switch_distance_m", "switch_heading_deg", "settle_heading_deg", "subgoal_timeout_s", "scan_turn_rps", "scan_every_s",
+                     "start_confirm_every_s",
                      "time_budget_base_s", "time_budget_s_per_hop"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"navigate {name} must be positive")

@@ -36,8 +36,9 @@ instead of holding still (:meth:`~topomap.servo.servo.AppearanceServo.reacquire_
 
 The start. An answer at ``LocalizeConfig.min_confidence`` is taken at once; a weaker one (at least
 ``start_verified_confidence``) only once the servo's geometry confirms it: its relative pose to the
-node has ``switch_min_inliers`` inliers in two frames a scan step apart, and the two headings differ
-by the turn the two frames measure between them. Otherwise the scan goes on; after a full turn the
+node has ``switch_min_inliers`` inliers, and after a short turn (``start_confirm_every_s``, so the
+place stays in view) it verifies again, with a heading that differs by the turn the two frames
+measure between them. Otherwise the scan goes on; after a full turn the
 start fails ("could not localize") rather than guess.
 
 Recovery (docs/theory.md section 4.4). After ``lost_after_steps`` periods without usable geometry,
@@ -323,14 +324,15 @@ class Navigator:
         self._camera_height_m = height if height is not None else getattr(robot, "camera_height_m", None)
 
     # ------------------------------------------------------------------ robot I/O
-    def _scan_step(self) -> float:
-        """Turn in place for ``scan_every_s`` (the estimated yaw disturbance compensated); returns the
-        angle turned [rad]."""
+    def _scan_step(self, duration_s: float | None = None) -> float:
+        """Turn in place for ``duration_s`` (default ``scan_every_s``; the estimated yaw disturbance
+        compensated); returns the angle turned [rad]."""
         cfg = self.config
         d_omega = self._estimate.d_omega if self._estimate is not None and self._estimate.ready else 0.0
         turn = Command(0.0, 0.0, cfg.scan_turn_rps - d_omega)
         turned = 0.0
-        for _ in range(max(1, int(round(cfg.scan_every_s / cfg.control_period_s)))):
+        duration_s = cfg.scan_every_s if duration_s is None else duration_s
+        for _ in range(max(1, int(round(duration_s / cfg.control_period_s)))):
             self._move(turn)
             turned += cfg.scan_turn_rps * cfg.control_period_s
         return turned
@@ -372,7 +374,8 @@ class Navigator:
             image, q = self._look(localizing=True)
             if pending is not None:  # the previous frame's candidate: does its geometry hold after the turn?
                 cand, pose, before = pending
-                again = self._start_pose(q, cand.node)
+                # the heading loop is the confirmation; after the turn the view may hold half the inliers
+                again = self._start_pose(q, cand.node, min_inliers=self.map.config.match.min_inliers)
                 turn = self._frame_heading(q, before)  # the turn as the two images measure it
                 if (again is not None and math.isfinite(turn) and abs(wrap_angle(again.theta - pose.theta - turn))
                         < math.radians(cfg.start_confirm_heading_deg)):
@@ -390,7 +393,8 @@ class Navigator:
                 pending = (loc, pose, q)
             if turned >= 2 * math.pi and pending is None:
                 break
-            turned += self._scan_step()  # turn for scan_every_s, then look again
+            # a short turn before the confirming frame keeps the candidate's place in view
+            turned += self._scan_step(cfg.start_confirm_every_s if pending is not None else None)
         self._hold()
         if found is None:
             conf = best.confidence if best else 0.0
@@ -415,11 +419,12 @@ class Navigator:
         pose = self._pose_against(q, before.features)
         return pose.theta if pose is not None and pose.has_heading else math.nan
 
-    def _start_pose(self, q: Query, node: int) -> RelativePose | None:
+    def _start_pose(self, q: Query, node: int, min_inliers: int | None = None) -> RelativePose | None:
         """The servo's relative pose of the image of ``q`` in ``node``'s keyframe when it has a heading
-        from at least ``switch_min_inliers`` inliers, else None."""
+        from at least ``min_inliers`` (default ``switch_min_inliers``) inliers, else None."""
+        need = self.config.switch_min_inliers if min_inliers is None else min_inliers
         pose = self._pose_against(q, self.map.nodes[node].features, self.map.camera)
-        return pose if pose is not None and pose.has_heading and pose.inliers >= self.config.switch_min_inliers else None
+        return pose if pose is not None and pose.has_heading and pose.inliers >= need else None
 
     def _plan(self, start: int, goal: int) -> Route:
         try:
