@@ -20,7 +20,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from topomap.calibration import Calibration, image_quality
+from topomap.calibration import Calibration, image_quality, quality_reference
 from topomap.config import LocalizeConfig
 from topomap.graph import TopoMap
 from topomap.localize import Localizer, Query, SequenceLocalizer
@@ -93,9 +93,5 @@ def _quality_reference(tmap: TopoMap, new: set[int], seed: int) -> dict:
         return dict(cal.reference)
     old = np.array(sorted(n for n in tmap.nodes if n not in new), np.int64)
     pick = np.random.default_rng(seed).choice(old, size=min(QUALITY_SAMPLE, len(old)), replace=False)
-    qualities = [image_quality(img) for n in sorted(pick.tolist()) if (img := keyframe_image(tmap, n)) is not None]
-    if not qualities:
-        return {}
-    return {"snr": float(np.median([q.snr for q in qualities])),
-            "contrast": float(np.median([q.contrast for q in qualities])),
-            "clipped": float(np.median([q.clipped for q in qualities]))}
+    return quality_reference([image_quality(img) for n in sorted(pick.tolist())
+                              if (img := keyframe_image(tmap, n)) is not None])

@@ -26,7 +26,7 @@ from scipy.optimize import minimize
 from topomap.errors import MapFormatError
 
 __all__ = ["SINGLE_FEATURES", "FEATURE_SIGNS", "Calibrator", "Calibration", "ImageQuality",
-           "image_quality", "quality_evidence", "expected_calibration_error", "reliability", "logit", "CALIBRATION_KEY"]
+           "image_quality", "quality_reference", "quality_evidence", "expected_calibration_error", "reliability", "logit", "CALIBRATION_KEY"]
 
 #: Map meta key of the calibration (plain numbers; see :meth:`Calibration.to_dict`).
 CALIBRATION_KEY = "calibration"
@@ -138,6 +138,16 @@ def image_quality(image: np.ndarray) -> ImageQuality:
     noise = math.sqrt(math.pi / 2.0) * float(np.abs(r).sum()) / (6.0 * (w - 2) * (h - 2))
     contrast = float(cv2.GaussianBlur(f, (0, 0), 2.0).std())
     return ImageQuality(noise, contrast, clipped)
+
+
+def quality_reference(qualities: list[ImageQuality]) -> dict:
+    """The reference a query's quality is judged against: the median ``snr``, ``contrast`` and
+    ``clipped`` of the map keyframes' qualities (empty when there are none)."""
+    if not qualities:
+        return {}
+    return {"snr": float(np.median([q.snr for q in qualities])),
+            "contrast": float(np.median([q.contrast for q in qualities])),
+            "clipped": float(np.median([q.clipped for q in qualities]))}
 
 
 def quality_evidence(q: ImageQuality, reference: dict) -> dict[str, float]:

@@ -222,13 +222,13 @@ class Localizer:
         desc_meta = tmap.meta.get("descriptor") or {}
         self.descriptor_size = tuple(desc_meta.get("size", THUMBNAIL_SIZE))
         self.descriptor_patch = int(desc_meta.get("patch", THUMBNAIL_PATCH))
-        have_descriptors = all(tmap.nodes[int(n)].descriptor is not None for n in self.node_ids)
-        if self.use_thumbnail and not have_descriptors:
-            missing = [int(n) for n in self.node_ids if tmap.nodes[int(n)].descriptor is None]
+        missing = ([int(n) for n in self.node_ids if tmap.nodes[int(n)].descriptor is None]
+                   if self.use_thumbnail or mode == "hog" else [])
+        if self.use_thumbnail and missing:
             raise IndexMissingError(f"nodes {missing[:5]} have no whole-image descriptor; rebuild the map")
         # HOG's gradients drown in the noise of a dark frame where the patch-normalised thumbnail (SeqSLAM's
         # descriptor) survives: on such frames the filter blends it in by the frame's degradation
-        self.blend_thumbnail = mode == "hog" and have_descriptors
+        self.blend_thumbnail = mode == "hog" and not missing
         if self.use_thumbnail or self.blend_thumbnail:
             self._descriptors = np.stack([tmap.nodes[int(n)].descriptor for n in self.node_ids]).astype(np.float32)
         self._desc_stats: tuple[np.ndarray, np.ndarray] | None = None  # computed on first use (sequence mode)
@@ -314,8 +314,6 @@ class Localizer:
         if len(desc) != self._descriptors.shape[1]:  # prepared by a localizer that did not need it
             desc = thumbnail_descriptor(q.image, self.descriptor_size, self.descriptor_patch)
         d = sad(desc, self._descriptors if rows is None else self._descriptors[rows]).astype(np.float64)
-        z = _robust_z(-d)
-        thumb = z if rows is None else _spread(z, rows, len(score))
         hub = None
         if hub_correction:
             if self._desc_stats is None:
@@ -325,7 +323,9 @@ class Localizer:
             hub = z if rows is None else _spread(z, rows, len(score))
         if not self.use_thumbnail:  # hog, the thumbnail weighted in by the frame's degradation
             return score, (1.0 - w) * score + w * hub
-        return score + thumb, (None if hub is None else score + hub)
+        z = _robust_z(-d)
+        plain = score + (z if rows is None else _spread(z, rows, len(score)))
+        return plain, (None if hub is None else score + hub)
 
     def degradation(self, q: Query) -> float:
         """How much worse the frame is than the map's keyframes, in [0, 1): ``1 - 1 / (1 + low_snr +

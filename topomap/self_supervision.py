@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from topomap.calibration import CALIBRATION_KEY, SINGLE_FEATURES, Calibration, Calibrator, image_quality
+from topomap.calibration import CALIBRATION_KEY, SINGLE_FEATURES, Calibration, Calibrator, image_quality, quality_reference
 from topomap.config import LocalizeConfig
 from topomap.errors import CalibrationError
 from topomap.graph import TopoMap
@@ -90,10 +90,6 @@ def keyframe_image(tmap: TopoMap, node_id: int) -> np.ndarray | None:
         return decode_image(n.image_data, max_pixels=w * h, max_size=(w, h), formats=("PNG", "JPEG"),
                             what=f"the image of node {node_id}")
     return None
-
-
-def _closed_neighbourhood(tmap: TopoMap, node_id: int) -> set[int]:
-    return {node_id, *tmap.linked(node_id)}
 
 
 def viewpoint_change(image: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:
@@ -225,10 +221,7 @@ def calibrate_map(tmap: TopoMap, *, queries: int = 60, seed: int = 0, config: Lo
         raise CalibrationError(f"{NOT_CALIBRATED}: the map needs at least 10 keyframe images to calibrate "
                            f"(it has {len(with_images)}; maps built with --no-images cannot be calibrated)")
     chosen = sorted(rng.choice(with_images, min(queries, len(with_images)), replace=False).tolist())
-    qualities = [image_quality(keyframe_image(tmap, n)) for n in chosen]
-    reference = {"snr": float(np.median([q.snr for q in qualities])),
-                 "contrast": float(np.median([q.contrast for q in qualities])),
-                 "clipped": float(np.median([q.clipped for q in qualities]))}
+    reference = quality_reference([image_quality(keyframe_image(tmap, n)) for n in chosen])
     # evidence of image quality is relative to the map's keyframes: install the reference first
     loc.quality_reference = reference
     if executor is not None and executor.workers > 1:
