@@ -300,6 +300,7 @@ def corridor(tmp: Path, with_480: bool):
         if f.node is not None:
             node_frames[f.node].add(f.source)
     good_nodes = [truth.correct_nodes(n, node_frames) for n in q_names]
+    near = near_rate(m, ref_pos, good_frames)
     print(f"corridor: {len(ref_imgs)} reference frames -> {len(m.nodes)} nodes (build {build_s:.1f} s), "
           f"{len(q_imgs)} queries")
 
@@ -331,7 +332,7 @@ def corridor(tmp: Path, with_480: bool):
         rows.append(score_ranked(name, "node", [to_nodes(r, node_of_ref) for r in ranked], conf, good_nodes, ms))
     print_table("corridor (topomap: node level; baselines: frame level, and node level for comparison)", rows,
                 {"exh": "exhaustive ORB native", "exh-p15": "exhaustive ORB native p15", "thumb": "thumbnail SAD 32x24"})
-    return m, q_names, q_imgs, truth, lambda imgs: _top1(seqslam(ref_imgs, imgs, (32, 24))[0], good_frames)
+    return m, q_names, q_imgs, truth, lambda imgs: _top1(seqslam(ref_imgs, imgs, (32, 24))[0], good_frames), near
 
 
 def nordland(tmp: Path):
@@ -345,6 +346,7 @@ def nordland(tmp: Path):
     truth = same_name(q_names, m)
     ref_pos = {f.name: i for i, f in enumerate(ref_seq)}
     good_frames = [{ref_pos[s] for s in truth.matches.get(n, ())} for n in q_names]
+    near = near_rate(m, ref_pos, good_frames)
     print(f"\nnordland-64x32: {len(ref_imgs)} summer frames -> {len(m.nodes)} nodes (build {build_s:.1f} s), "
           f"{len(q_imgs)} winter queries")
     rows = []
@@ -358,7 +360,22 @@ def nordland(tmp: Path):
         rows.append(score_ranked(name, "frame", ranked, conf, good_frames, ms))
     print_table("nordland summer -> winter (one node per frame: node level = frame level)", rows,
                 {"thumb": "thumbnail SAD 32x16", "seqslam": "SeqSLAM 32x16"})
-    return m, q_names, q_imgs, truth, lambda imgs: _top1(seqslam(ref_imgs, imgs, size)[0], good_frames)
+    return m, q_names, q_imgs, truth, lambda imgs: _top1(seqslam(ref_imgs, imgs, size)[0], good_frames), near
+
+
+def near_rate(m, ref_pos: dict[str, int], good_frames: list[set[int]]):
+    """``near(outcomes, k)``: the fraction of queries whose answered node represents a reference frame
+    within ``k`` frames of a right one (the tolerance day -> night evaluations use, e.g. 8 frames)."""
+    node_pos: dict[int, list[int]] = {}
+    for f in m.frames:
+        if f.node is not None and f.source in ref_pos:
+            node_pos.setdefault(f.node, []).append(ref_pos[f.source])
+
+    def near(outcomes, k: int) -> float:
+        hits = [any(abs(p - g) <= k for p in node_pos.get(o.node, ()) for g in good)
+                for o, good in zip(outcomes, good_frames)]
+        return float(np.mean(hits)) if hits else float("nan")
+    return near
 
 
 def _top1(ranked: list[list[int]], good: list[set[int]]) -> float:
@@ -366,11 +383,12 @@ def _top1(ranked: list[list[int]], good: list[set[int]]) -> float:
     return float(np.mean([bool(r) and r[0] in g for r, g in zip(ranked, good)]))
 
 
-def appearance_change(title: str, m, names, images, truth, seqslam_top1) -> None:
-    """The photometric presets applied to the queries (seeded per query): topomap in both modes, and
-    the SeqSLAM baseline's top-1 (frame level) on the same changed queries beside the sequence row."""
+def appearance_change(title: str, m, names, images, truth, seqslam_top1, near) -> None:
+    """The photometric presets applied to the queries (seeded per query): topomap in both modes (top-1,
+    and top-1 within 8 reference frames of a right one), and the SeqSLAM baseline's top-1 (frame
+    level) on the same changed queries beside the sequence row."""
     print(f"\nappearance change, {title}: each preset of topomap.photometric applied to the queries")
-    head = (f"{'condition':<14}{'mode':<10}{'top-1':>7}{'decl':>7}{'decl&ok':>8}{'prec':>7}{'recall/none':>12}"
+    head = (f"{'condition':<14}{'mode':<10}{'top-1':>7}{'+-8 fr':>7}{'decl':>7}{'decl&ok':>8}{'prec':>7}{'recall/none':>12}"
             f"{'ECE':>7}{'ms/query':>10}{'SeqSLAM top-1':>15}")
     print(head)
     print("-" * len(head))
@@ -382,10 +400,11 @@ def appearance_change(title: str, m, names, images, truth, seqslam_top1) -> None
             base.setdefault(seq, res.declared_right)
             rel = res.declared_right / base[seq] if base[seq] > 0 else float("nan")
             other = f"{seqslam_top1(changed):15.3f}" if seq else ""
-            print(f"{name:<14}{'sequence' if seq else 'single':<10}{res.recall_at[1]:7.3f}{res.declared:7.3f}"
+            print(f"{name:<14}{'sequence' if seq else 'single':<10}{res.recall_at[1]:7.3f}"
+                  f"{near(res.outcomes, 8):7.3f}{res.declared:7.3f}"
                   f"{res.declared_right:8.3f}{res.declared_precision:7.3f}{rel:12.2f}{res.ece:7.3f}{ms:10.1f}{other}")
-    print("  prec = precision of the declared answers (1.000 when none is declared); recall/none = declared&ok "
-          "relative to the unchanged queries")
+    print("  +-8 fr = answered node within 8 reference frames of a right one; prec = precision of the declared "
+          "answers (1.000 when none is declared); recall/none = declared&ok relative to the unchanged queries")
 
 
 def foreign(maps: dict[str, object]) -> None:
@@ -421,10 +440,10 @@ def main() -> None:
             data["corridor"] = corridor(Path(tmp), not args.no_exhaustive_480)
         if args.dataset in ("nordland", "all"):
             data["nordland"] = nordland(Path(tmp))
-        for name, (m, names, images, truth, seqslam_top1) in data.items():
+        for name, (m, names, images, truth, seqslam_top1, near) in data.items():
             maps[name] = m
             if not args.no_conditions:
-                appearance_change(name, m, names, images, truth, seqslam_top1)
+                appearance_change(name, m, names, images, truth, seqslam_top1, near)
         foreign(maps)
 
 
