@@ -26,7 +26,10 @@ class Photometric:
     """A photometric change. ``exposure_ev``: stops (linear light x ``2**ev``); ``gamma``: tone curve
     exponent on the output (> 1 darkens mid-tones, as a night camera's curve does); ``white_balance_rgb``
     channel gains in linear light; ``vignetting``: brightness lost at the corners (0-1);
-    ``blur_sigma_px``: Gaussian blur [px]; ``noise_std``: Gaussian read noise [grey levels of 255]."""
+    ``blur_sigma_px``: Gaussian blur [px]; ``noise_std``: Gaussian read noise [grey levels of 255];
+    ``light_pools``: pools of artificial light (lamps, a headlight) added in linear light, each a
+    Gaussian patch as bright as 0.5-2x the unchanged image (so their centres clip), fixed in the
+    image and drawn from ``pool_seed`` — night is lit in places, not dimmed evenly."""
 
     exposure_ev: float = 0.0
     gamma: float = 1.0
@@ -34,6 +37,8 @@ class Photometric:
     vignetting: float = 0.0
     blur_sigma_px: float = 0.0
     noise_std: float = 0.0
+    light_pools: int = 0
+    pool_seed: int = 0
     name: str = "custom"
 
     def __post_init__(self) -> None:
@@ -43,6 +48,8 @@ class Photometric:
             v = getattr(self, f)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
                 raise ConfigError(f"photometric {f}={v!r} must lie in [{lo}, {hi}]")
+        if not (isinstance(self.light_pools, int) and 0 <= self.light_pools <= 16 and isinstance(self.pool_seed, int)):
+            raise ConfigError(f"photometric light_pools={self.light_pools!r} must be an integer in [0, 16], pool_seed an integer")
         wb = tuple(float(x) for x in self.white_balance_rgb)
         if len(wb) != 3 or not all(0.0 <= x <= 4.0 for x in wb):
             raise ConfigError(f"photometric white_balance_rgb={self.white_balance_rgb!r} must be three gains in [0, 4]")
@@ -60,6 +67,8 @@ PHOTOMETRIC_PRESETS: dict[str, Photometric] = {
     "night": Photometric(exposure_ev=-3.0, gamma=1.3, vignetting=0.5, blur_sigma_px=0.8, noise_std=5.0, name="night"),
     "deep-night": Photometric(exposure_ev=-4.5, gamma=1.5, vignetting=0.6, blur_sigma_px=1.2, noise_std=8.0,
                               name="deep-night"),
+    "lamp-night": Photometric(exposure_ev=-4.5, gamma=1.3, light_pools=3, pool_seed=7, blur_sigma_px=0.8,
+                              noise_std=6.0, name="lamp-night"),
     "overexposed": Photometric(exposure_ev=1.5, name="overexposed"),
     "underexposed": Photometric(exposure_ev=-2.0, name="underexposed"),
     "noisy-camera": Photometric(noise_std=8.0, blur_sigma_px=1.2, vignetting=0.3, name="noisy-camera"),
@@ -91,8 +100,9 @@ def apply_photometric(image: np.ndarray, change: Photometric, rng: np.random.Gen
     if change.noise_std > 0 and rng is None:
         raise ConfigError("sensor noise needs a numpy Generator (rng)")
     out = img.astype(np.float32) / 255.0
-    if change.exposure_ev != 0 or change.white_balance_rgb != (1.0, 1.0, 1.0) or change.vignetting > 0:
-        lin = _srgb_to_linear(out)
+    if (change.exposure_ev != 0 or change.white_balance_rgb != (1.0, 1.0, 1.0) or change.vignetting > 0
+            or change.light_pools > 0):
+        lin = base = _srgb_to_linear(out)
         gain = np.float32(2.0 ** change.exposure_ev)
         if img.ndim == 3:
             lin = lin * (gain * np.asarray(change.white_balance_rgb, np.float32))[None, None, :]
@@ -104,6 +114,9 @@ def apply_photometric(image: np.ndarray, change: Photometric, rng: np.random.Gen
             r2 = ((xx - (w - 1) / 2) ** 2 + (yy - (h - 1) / 2) ** 2) / (((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2)
             fall = 1.0 - np.float32(change.vignetting) * r2  # cos^4-like falloff, 1 at the centre
             lin = lin * (fall[..., None] if img.ndim == 3 else fall)
+        if change.light_pools > 0:
+            pools = _light_pools(img.shape[0], img.shape[1], change.light_pools, change.pool_seed)
+            lin = lin + base * (pools[..., None] if img.ndim == 3 else pools)
         out = _linear_to_srgb(lin).astype(np.float32)
     if change.gamma != 1.0:
         out = np.power(np.clip(out, 0.0, 1.0), np.float32(change.gamma))
@@ -113,6 +126,20 @@ def apply_photometric(image: np.ndarray, change: Photometric, rng: np.random.Gen
     if change.noise_std > 0:
         out = out + rng.normal(0.0, change.noise_std, out.shape).astype(np.float32)
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+
+def _light_pools(h: int, w: int, count: int, seed: int) -> np.ndarray:
+    """(H, W) float32 gain of ``count`` Gaussian pools of light: centres anywhere, radii 8-20 % of the
+    diagonal, peaks 0.5-2 (times the unchanged image's light)."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.arange(h, dtype=np.float32)[:, None], np.arange(w, dtype=np.float32)[None, :]
+    diag = float(np.hypot(h, w))
+    out = np.zeros((h, w), np.float32)
+    for _ in range(count):
+        cx, cy = rng.uniform(0, w), rng.uniform(0, h)
+        sigma = rng.uniform(0.08, 0.2) * diag
+        out += np.float32(rng.uniform(0.5, 2.0)) * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / np.float32(2 * sigma**2))
+    return out
 
 
 def random_photometric(rng: np.random.Generator, strength: float = 1.0) -> Photometric:
