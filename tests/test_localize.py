@@ -614,3 +614,28 @@ def test_hog_blends_the_thumbnail_in_on_dark_frames(nordland_300):
         right[name] = float(np.mean(ok))
         assert all(r for a, r in zip(answers, ok) if a.localized)
     assert right["blended"] >= 0.25 and right["blended"] >= right["hog"] + 0.2, right
+
+
+@pytest.mark.slow
+def test_an_appearance_only_filter_declares_nothing_after_leaving_the_map(nordland_300):
+    """A camera that leaves the map carries the belief of the frames before into the first frames of
+    the other place; on a map without keypoints only the frame's own Bayes factor (map against
+    elsewhere) can tell, so a frame that does not favour the map by ``declare_min_frame_ratio``
+    declares nothing. Winter frames, then the corridor's, then winter again."""
+    m, winter = nordland_300
+    foreign = [f.image for f in open_sequence(dataset("corridor") / "query")][:40]
+    for ratio, must_hold in ((LocalizeConfig().declare_min_frame_ratio, True), (1.0, False)):
+        filt = SequenceLocalizer(Localizer(m, LocalizeConfig(declare_min_frame_ratio=ratio)))
+        before = []
+        for x in winter:  # leave where the filter is surest: the most belief to carry over
+            before.append(filt.update(x))
+            if len(before) > 50 and before[-1].confidence >= 0.97:
+                break
+        during = [filt.update(x) for x in foreign]
+        after = [filt.update(x) for x in winter[len(before):]]
+        assert before[-1].confidence >= 0.97 and any(a.localized for a in after)
+        assert all(a.evidence["frame_ratio"] >= ratio for a in before + during + after if a.localized)
+        if must_hold:
+            assert not any(a.localized for a in during), [round(a.confidence, 2) for a in during[:5]]
+        else:  # the rule is what holds it: without it the belief carried over declares the first frame
+            assert during[0].localized, round(during[0].confidence, 3)

@@ -665,12 +665,17 @@ class SequenceLocalizer:
         self.belief = belief * (1.0 - e)
 
         calibrated = loc.calibration is not None
-        frame_ev = {**ev1, "frame_probability": self.frame.confidence if calibrated else None, "elsewhere": e}
+        frame_ev = {**ev1, "frame_probability": self.frame.confidence if calibrated else None, "elsewhere": e,
+                    "frame_ratio": ratio}
 
         def confidence(row: int, mass: float) -> tuple[float, bool, dict]:
             return mass, calibrated, frame_ev
 
-        return loc.answer(self.belief, score, checks, self.belief, confidence)
+        out = loc.answer(self.belief, score, checks, self.belief, confidence)
+        if out.localized and not loc.use_bow and ratio < cfg.declare_min_frame_ratio:
+            # a frame that does not itself favour the map declares nothing, whatever the belief carried
+            out = dataclasses.replace(out, status=LocalizationStatus.UNKNOWN)
+        return out
 
     def run(self, images: Iterable[np.ndarray]) -> Iterator[Localization]:
         for img in images:
