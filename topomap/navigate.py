@@ -25,7 +25,8 @@ matches with the goal keyframe have moved less than ``arrive_image_error`` of th
 a single wall the planar relative pose is ambiguous, so the pose estimate alone cannot certify arrival.
 With the camera height known, the floor must agree too: the distance the lowest matched points measure
 (median over the settle window) below ``arrive_floor_max_m``, measured in at least
-``arrive_floor_min_fraction`` of the window's frames — an unmeasured floor certifies nothing. On long views the goal's scale from its
+``arrive_floor_min_fraction`` of the window's frames — an unmeasured floor certifies nothing. The image
+check looks at the image turned back by the servo's heading estimate: it judges the position. On long views the goal's scale from its
 neighbours can be several times too small — the servo then believes it has arrived a quarter metre
 out, where the image barely differs — so a refused arrival hands the servo the scale the floor measured.
 The disturbance estimates carry from one subgoal to the next, and so does the heading: at a switch
