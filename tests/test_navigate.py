@@ -351,7 +351,7 @@ def test_arrival_needs_the_floor_to_agree():
     assert answers[:-1] == [None] * (n - 1) and answers[-1] == "far"
     assert far.floor_scale(2.0) == pytest.approx(2.0 * 0.3 / 0.02)
     assert settle([0.05] * n)[1][-1] == "precise"
-    assert settle([math.nan] * n)[1][-1] == "precise"  # no floor seen: nothing contradicts
+    assert settle([math.nan] * n)[1][-1] == "precise"  # camera height unknown: nothing contradicts
     few = [0.3 if k < int(cfg.arrive_floor_min_fraction * n) - 1 else math.nan for k in range(n)]
     assert settle(few)[1][-1] == "precise"
     # a unicycle's patient settle is bounded by settle_patience_max_m instead
@@ -361,6 +361,75 @@ def test_arrival_needs_the_floor_to_agree():
         t = np.arange(0.0, cfg.settle_patience_s + 1.0, cfg.control_period_s)
         answers = [a for ti in t if (a := s.update(ti, slow, False, lambda: True, bound)) is not None]
         assert answers and answers[0] == expect
+
+
+def test_arrival_needs_a_measured_floor_when_the_height_is_known():
+    """Held-out world 118 ep 0 under ``moved``: the goal's scale from its neighbours was 1 m per unit
+    (clipped; the truth 9-16 m on a deep corridor view), the servo converged 0.67 m out, the image
+    agreed and the floor was measured in too few frames to contradict — a false arrival. With the
+    camera height known an unmeasured floor certifies nothing: "far", and the floor readings the
+    window has give the scale."""
+    import types
+
+    from topomap.config import NavigateConfig
+    from topomap.navigate import _Settle
+
+    cfg = NavigateConfig()
+    out = types.SimpleNamespace(converged=True, position_error_m=0.02, heading_error_rad=0.0)
+    n = cfg.settle_steps
+
+    def last(floors):
+        s = _Settle(cfg, floor_required=True)
+        return s, [s.update(k * cfg.control_period_s, out, True, lambda: True, f) for k, f in enumerate(floors)][-1]
+
+    assert last([math.nan] * n)[1] == "far"
+    sparse, answer = last([0.8] + [math.nan] * (n - 1))  # one reading in five: too few to judge
+    assert answer == "far" and sparse.floor_scale(1.0) == pytest.approx(0.8 / 0.02)
+    assert last([0.05] * n)[1] == "precise"
+    assert last([0.3] * n)[1] == "far"
+
+
+def test_goal_image_check_undoes_the_estimated_heading():
+    """Held-out world 118 ep 2 under ``lighting``: 0.02 m from the goal, turned 3.6 deg, the matches
+    moved 6 % of the width (one degree of yaw is ~1.5 %, the bound 2 %) and the thumbnail shifted;
+    after 1.5 s the goal counted as a look-alike and the run gave up. Turned back by the servo's
+    heading, the image and its matches are the goal's again."""
+    import types
+
+    import cv2
+    import numpy as np
+
+    from topomap.camera import CameraIntrinsics
+    from topomap.localize import Query
+    from topomap.matching import Verification
+    from topomap.navigate import Navigator
+    from topomap.retrieval import THUMBNAIL_PATCH, THUMBNAIL_SIZE, sad, thumbnail_descriptor
+    from topomap.servo.essential import rotation_y
+
+    cam = CameraIntrinsics.default(320, 240)
+    rng = np.random.default_rng(0)
+    goal_img = cv2.GaussianBlur(rng.integers(0, 255, (240, 320)).astype(np.uint8), (0, 0), 3)
+    theta = math.radians(3.6)
+    K = cam.K
+    to_current = K @ rotation_y(theta) @ np.linalg.inv(K)  # the goal's view seen turned by theta
+    cur_img = cv2.warpPerspective(goal_img, to_current, (320, 240), borderMode=cv2.BORDER_REPLICATE)
+    goal_px = rng.uniform([40, 40], [280, 200], (60, 2))
+    p = np.c_[goal_px, np.ones(60)] @ to_current.T
+    cur_px = p[:, :2] / p[:, 2:]
+    raw = float(np.median(np.linalg.norm(cur_px - goal_px, axis=1)))
+    nav = types.SimpleNamespace(camera=cam, localizer=types.SimpleNamespace(
+        descriptor_size=THUMBNAIL_SIZE, descriptor_patch=THUMBNAIL_PATCH))
+    q = Query(cur_img, None, thumbnail_descriptor(cur_img))
+    v = Verification(None, np.ones(60, bool), np.eye(3), 1.0, raw)
+    goal_desc = thumbnail_descriptor(goal_img)
+    for heading in (theta, -theta):  # the servo's estimate, and the wrong sign for contrast
+        qa, va = Navigator._derotated(nav, q, v, cur_px, goal_px, heading)
+        if heading > 0:
+            assert raw > 0.02 * 320 and va.flow_px < 0.1 * raw
+            assert sad(qa.descriptor, goal_desc[None])[0] < 0.5 * sad(q.descriptor, goal_desc[None])[0]
+        else:
+            assert va.flow_px > raw
+    assert Navigator._derotated(nav, q, v, cur_px, goal_px, math.nan) == (q, v)  # no heading: unchanged
 
 
 class _Unsure:

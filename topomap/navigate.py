@@ -24,7 +24,9 @@ and in both cases only if the image agrees (:class:`~topomap.agreement.GoalAgree
 matches with the goal keyframe have moved less than ``arrive_image_error`` of the image width. Facing
 a single wall the planar relative pose is ambiguous, so the pose estimate alone cannot certify arrival.
 With the camera height known, the floor must agree too: the distance the lowest matched points measure
-(median over the settle window) below ``arrive_floor_max_m``. On long views the goal's scale from its
+(median over the settle window) below ``arrive_floor_max_m``, measured in at least
+``arrive_floor_min_fraction`` of the window's frames — an unmeasured floor certifies nothing. The image
+check looks at the image turned back by the servo's heading estimate: it judges the position. On long views the goal's scale from its
 neighbours can be several times too small — the servo then believes it has arrived a quarter metre
 out, where the image barely differs — so a refused arrival hands the servo the scale the floor measured.
 The disturbance estimates carry from one subgoal to the next, and so does the heading: at a switch
@@ -67,9 +69,10 @@ import logging
 import math
 from collections import deque
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
+import cv2
 import networkx as nx
 import numpy as np
 
@@ -84,6 +87,8 @@ from topomap.matching import Verification, verify
 from topomap.motion import STOP, Command, VehicleKind, vehicle_kind, wrap_angle
 from topomap.plan import Planner, Route
 from topomap.relative_motion import SCALE_CLIP_FACTOR, KeyframePairs
+from topomap.retrieval import thumbnail_descriptor
+from topomap.servo.essential import rotation_y
 from topomap.servo.pose import PoseStatus, RelativePose
 from topomap.servo.relpose import relative_pose
 from topomap.servo.servo import AppearanceServo, ServoOutput, ServoStatus
@@ -96,6 +101,9 @@ log = logging.getLogger(__name__)
 WAYPOINT_UNDOCK_FACTOR = 1.7
 #: The settle window counts only when at least this fraction of its steps has a pose estimate.
 SETTLE_MIN_VALID_FRACTION = 0.8
+#: The goal's image check undoes at most this much of the estimated heading [deg] (a wider warp
+#: replicates too much border into the thumbnail).
+DEROTATE_MAX_DEG = 5.0
 #: While backing off, look for the node that verified well every this many periods.
 BACKOFF_CHECK_EVERY = 3
 
@@ -183,10 +191,12 @@ class _Settle:
     aligned and close, it stops making progress — and in both cases only if the image agrees. A
     unicycle that stalls further out (within ``settle_patience_max_m``) settles there if the image
     agrees within the looser ``settle_patience_image_error``. ``false_arrival`` counts the periods
-    in a row the servo believed it had arrived while the image disagreed (a look-alike place)."""
+    in a row the servo believed it had arrived while the image disagreed (a look-alike place).
+    ``floor_required`` (the camera height is known): an arrival needs the floor measured and agreeing."""
 
-    def __init__(self, config: NavigateConfig):
+    def __init__(self, config: NavigateConfig, floor_required: bool = False):
         self.config = config
+        self.floor_required = floor_required
         # (time, estimated distance, heading, distance the floor measures [m] or NaN)
         self.history: list[tuple[float, float, float, float]] = []
         self.converged_streak = 0
@@ -197,7 +207,8 @@ class _Settle:
         """One period at the goal; ``loosely_agrees()``: the image agrees within the patience bound
         (asked only when needed); ``floor_m``: the distance the floor measures in this image [m] (NaN:
         unknown). Returns ``"precise"``, ``"settled"``, ``"far"`` (the servo and the image say
-        arrived, the floor disagrees: :meth:`floor_scale` is the scale it measures) or None."""
+        arrived, the floor disagrees or, when required, was not measured: :meth:`floor_scale` is the
+        scale its frames measure, if any) or None."""
         cfg = self.config
         self.converged_streak = self.converged_streak + 1 if (s.converged and image_ok) else 0
         self.history.append((time_s, s.position_error_m, s.heading_error_rad, floor_m))
@@ -222,9 +233,11 @@ class _Settle:
         return float(np.median(floor[ok]))
 
     def floor_agrees(self, bound_m: float) -> bool:
-        """The floor does not contradict an arrival within ``bound_m`` (no floor measured: no contradiction)."""
+        """The floor measures an arrival within ``bound_m``. Unmeasured, it agrees only when not
+        required: a goal's scale from its neighbours can be ten times too small on a deep view, where
+        the image barely changes over a metre — then the floor is the only metric witness left."""
         d = self.floor_distance()
-        return not d >= bound_m
+        return d < bound_m if self.floor_required else not d >= bound_m
 
     def floor_scale(self, scale_m: float) -> float | None:
         """The goal's scale [m per scaled unit] the floor measured over the settle window, from the
@@ -472,6 +485,26 @@ class Navigator:
         self.servo.retarget(normals, scale if i == len(nodes) - 1 else None, heading_prior)  # metric at the goal
         self.servo.reconfigure(**(self._goal_servo if i == len(nodes) - 1 else self._waypoint_servo))
 
+    def _derotated(self, q: Query, v: Verification, cur_px: np.ndarray, goal_px: np.ndarray, heading_rad: float
+                   ) -> tuple[Query, Verification]:
+        """The image of ``q`` and its verified matches turned about the camera centre by the servo's
+        heading estimate (at most DEROTATE_MAX_DEG) to the goal keyframe's orientation, for the goal's
+        image check: its flow and thumbnail then measure the position, not the heading, which has
+        its own tolerance — one degree of yaw moves the whole image about 1.5 % of its width, and
+        the flow bound is 2 %."""
+        if not v.verified or not math.isfinite(heading_rad) or len(cur_px) == 0:
+            return q, v
+        theta = math.radians(DEROTATE_MAX_DEG) * float(np.clip(heading_rad / math.radians(DEROTATE_MAX_DEG), -1.0, 1.0))
+        K = self.camera.K
+        H = K @ rotation_y(-theta) @ np.linalg.inv(K)
+        p = np.c_[cur_px, np.ones(len(cur_px))] @ H.T
+        flow = float(np.median(np.linalg.norm(p[:, :2] / p[:, 2:] - goal_px, axis=1)))
+        if q.descriptor.size:
+            h, w = q.image.shape[:2]
+            turned = cv2.warpPerspective(q.image, H, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            q = replace(q, descriptor=thumbnail_descriptor(turned, self.localizer.descriptor_size, self.localizer.descriptor_patch))
+        return q, replace(v, flow_px=flow)
+
     def _rescale(self, leg: _Leg) -> None:
         """The floor contradicted an arrival: the goal's scale is off. Take the scale the floor measured
         (within the range a goal's scale may take) and judge arrival on a fresh window."""
@@ -480,11 +513,14 @@ class Navigator:
         if measured is not None:
             self.servo.rescale(float(np.clip(measured, nominal / SCALE_CLIP_FACTOR, SCALE_CLIP_FACTOR * nominal)))
         self._count("arrivals the floor refused")
-        leg.settle = _Settle(self.config)
+        leg.settle = self._new_settle()
+
+    def _new_settle(self) -> _Settle:
+        return _Settle(self.config, floor_required=self._camera_height_m is not None)
 
     def _start_leg(self, nodes: list[int]) -> _Leg:
         """The one place a route's loop state starts (first plan and every re-plan)."""
-        leg = _Leg(list(nodes), _Settle(self.config), self._time)
+        leg = _Leg(list(nodes), self._new_settle(), self._time)
         self._target(leg.nodes, leg.i)
         return leg
 
@@ -515,9 +551,10 @@ class Navigator:
             # -- final goal: settle
             if final:
                 floor_m = s.floor_distance_h * self._camera_height_m if self._camera_height_m is not None else math.nan
+                qa, va = self._derotated(q, v, cur_px, goal_px, s.heading_error_rad)
                 arrived = leg.settle.update(
-                    self._time, s, self.agreement.agrees(q, v, sub),
-                    lambda: self.agreement.agrees(q, v, sub, cfg.settle_patience_image_error), floor_m)
+                    self._time, s, self.agreement.agrees(qa, va, sub),
+                    lambda: self.agreement.agrees(qa, va, sub, cfg.settle_patience_image_error), floor_m)
                 if arrived == "far":
                     self._rescale(leg)
                 elif arrived:
