@@ -25,8 +25,8 @@ apart; and the index's bytes per node (in RAM, and as the map file stores it).
 Run: ``python benchmarks/bench_build_scale.py [--sizes 1000,5000,20000] [--workers N]
 [--query-nodes 1000000] [--max-postings 1000000,2000000] [--cache DIR]`` (``--query-only`` takes the
 map of the largest ``--sizes``). Run time on the 2 shared cores (load 4-9, docs/build.md): rendering
-~9 frames/s per process (20k frames ~40 min), the 1k build ~5 min, the 5k build ~18 min, the 20k build
-more than four times that; ``--sizes 1000,5000 --query-nodes 0`` is a run of about half an hour once
+~9 frames/s per process (20k frames ~40 min), the 1k build ~5 min, the 5k build ~18 min, the 10k
+build ~32 min, the 20k build over an hour; ``--sizes 1000,5000 --query-nodes 0`` is a run of about half an hour once
 the frames are cached. The loop milliseconds are wall time: they follow the machine's load.
 """
 
