@@ -23,9 +23,11 @@ against real features; the same shortlist reading every posting list (exact) for
 apart; and the index's bytes per node (in RAM, and as the map file stores it).
 
 Run: ``python benchmarks/bench_build_scale.py [--sizes 1000,5000,20000] [--workers N]
-[--query-nodes 1000000] [--max-postings 1000000,2000000] [--cache DIR]`` (20k frames: about 1 h on
-2 shared cores, most of it the first rendering; ``--sizes 1000,5000 --query-nodes 100000`` for a
-quick run; ``--query-only`` takes the map of the largest ``--sizes``).
+[--query-nodes 1000000] [--max-postings 1000000,2000000] [--cache DIR]`` (``--query-only`` takes the
+map of the largest ``--sizes``). Run time on the 2 shared cores (load 4-9, docs/build.md): rendering
+~9 frames/s per process (20k frames ~40 min), the 1k build ~5 min, the 5k build ~18 min, the 10k
+build ~32 min, the 20k build over an hour; ``--sizes 1000,5000 --query-nodes 0`` is a run of about half an hour once
+the frames are cached. The loop milliseconds are wall time: they follow the machine's load.
 """
 
 from __future__ import annotations
