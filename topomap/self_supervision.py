@@ -178,10 +178,10 @@ class _SamplesTask:
     seed: int
 
 
-def _samples_task(task: _SamplesTask) -> list[tuple[dict, bool, str]]:
+def _samples_task(task: _SamplesTask) -> tuple[str, list[tuple[dict, bool, str]]]:
     loc = Localizer(task.map, task.config)
     loc.quality_reference = task.reference
-    return [s for nid in task.node_ids for s in keyframe_samples(loc, nid, keyframe_rng(task.seed, nid))]
+    return loc.mode, [s for nid in task.node_ids for s in keyframe_samples(loc, nid, keyframe_rng(task.seed, nid))]
 
 
 def _without_images(tmap: TopoMap, keep: set[int]) -> TopoMap:
@@ -192,16 +192,18 @@ def _without_images(tmap: TopoMap, keep: set[int]) -> TopoMap:
 
 
 def _parallel_samples(tmap: TopoMap, cfg: LocalizeConfig, reference: dict, node_ids: list[int], seed: int,
-                      executor: Executor) -> CalibrationSamples:
+                      executor: Executor) -> tuple[str, CalibrationSamples]:
     """:func:`single_samples` with the keyframes split over ``executor``'s workers (a few shares per
-    worker, so one slow worker does not hold up the rest); the samples come back in keyframe order."""
+    worker, so one slow worker does not hold up the rest); the samples come back in keyframe order,
+    with the descriptor mode the workers' localizers chose."""
     shares = [tuple(int(n) for n in part) for part in np.array_split(node_ids, min(len(node_ids), 2 * executor.workers))]
     tasks = (_SamplesTask(_without_images(tmap, set(part)), cfg, reference, part, seed) for part in shares if part)
-    out = CalibrationSamples(SINGLE_FEATURES)
-    for samples in executor.map(_samples_task, tasks, window=len(shares)):
+    out, mode = CalibrationSamples(SINGLE_FEATURES), ""
+    # each share is a copy of the map: no more in flight than there are workers to hold them
+    for mode, samples in executor.map(_samples_task, tasks, window=executor.workers):
         for evidence, right, kind in samples:
             out.add(evidence, right, kind)
-    return out
+    return mode, out
 
 
 def calibrate_map(tmap: TopoMap, *, queries: int = 60, seed: int = 0, config: LocalizeConfig | None = None,
@@ -214,7 +216,6 @@ def calibrate_map(tmap: TopoMap, *, queries: int = 60, seed: int = 0, config: Lo
     to learn from.
     """
     cfg = dataclasses.replace(config or LocalizeConfig(), use_calibration=False)
-    loc = Localizer(tmap, cfg)
     rng = np.random.default_rng(seed)
     with_images = [n for n in sorted(tmap.nodes) if tmap.nodes[n].image is not None or tmap.nodes[n].image_data is not None]
     if len(with_images) < 10:
@@ -222,17 +223,19 @@ def calibrate_map(tmap: TopoMap, *, queries: int = 60, seed: int = 0, config: Lo
                            f"(it has {len(with_images)}; maps built with --no-images cannot be calibrated)")
     chosen = sorted(rng.choice(with_images, min(queries, len(with_images)), replace=False).tolist())
     reference = quality_reference([image_quality(keyframe_image(tmap, n)) for n in chosen])
-    # evidence of image quality is relative to the map's keyframes: install the reference first
-    loc.quality_reference = reference
     if executor is not None and executor.workers > 1:
-        single = _parallel_samples(tmap, cfg, reference, chosen, seed, executor)
+        # the workers build the localizers: one here as well would hold a second index of the map
+        mode, single = _parallel_samples(tmap, cfg, reference, chosen, seed, executor)
     else:
-        single = single_samples(loc, chosen, seed)
+        loc = Localizer(tmap, cfg)
+        # evidence of image quality is relative to the map's keyframes: install the reference first
+        loc.quality_reference = reference
+        mode, single = loc.mode, single_samples(loc, chosen, seed)
     if len(single) < 20 or single.y.all() or not single.y.any():
         raise CalibrationError(f"{NOT_CALIBRATED}: its keyframes gave {len(single)} usable samples, "
                            f"{int(single.y.sum())} of them right; need both right and wrong answers")
     single_model = Calibrator.fit(SINGLE_FEATURES, single.x, single.y)
-    fitted_for = {"nodes": len(tmap.nodes), "descriptor": loc.mode, "samples": len(single),
+    fitted_for = {"nodes": len(tmap.nodes), "descriptor": mode, "samples": len(single),
                   "right": int(single.y.sum()), "seed": seed}
     cal = Calibration(single_model, reference, fitted_for)
     tmap.meta[CALIBRATION_KEY] = cal.to_dict()
