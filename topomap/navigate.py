@@ -494,7 +494,8 @@ class Navigator:
         the flow bound is 2 %."""
         if not v.verified or not math.isfinite(heading_rad) or len(cur_px) == 0:
             return q, v
-        theta = math.radians(DEROTATE_MAX_DEG) * float(np.clip(heading_rad / math.radians(DEROTATE_MAX_DEG), -1.0, 1.0))
+        bound = math.radians(DEROTATE_MAX_DEG)
+        theta = float(np.clip(heading_rad, -bound, bound))
         K = self.camera.K
         H = K @ rotation_y(-theta) @ np.linalg.inv(K)
         p = np.c_[cur_px, np.ones(len(cur_px))] @ H.T
