@@ -16,6 +16,7 @@ from topomap.parallel import ProcessExecutor
 from topomap.self_supervision import (
     _without_images,
     calibrate_map,
+    experience_labels,
     keyframe_rng,
     keyframe_samples,
     single_samples,
@@ -65,3 +66,43 @@ def test_a_worker_gets_the_images_of_its_keyframes_only(walk_map):
     assert {n for n, v in light.nodes.items() if v.image_data is not None} == keep and light.frames == []
     assert all(light.nodes[n].features is walk_map.nodes[n].features for n in walk_map.nodes)
     assert all(v.image_data is not None for v in walk_map.nodes.values())  # the map itself keeps them
+
+
+@pytest.fixture(scope="module")
+def two_walks(tmp_path_factory, walk_map):
+    """The walk, and the same walk again a little lower and aside appended as a second experience."""
+    folder = tmp_path_factory.mktemp("walk2")
+    write_sequence(folder, [window(scene(4, width=4000), x + 40.0, y=60.0) for x in XS])
+    m = build_map(folder, CONFIG, base=fresh(walk_map))
+    assert m.experiences()[1]["links"], "the second walk should be joined to the first by loop closures"
+    return m
+
+
+def _chains(m):
+    return [[n for n in sorted(m.nodes) if m.nodes[n].sequence == s] for s in (0, 1)]
+
+
+def test_an_appended_keyframe_is_labelled_where_the_joins_around_it_place_it(two_walks):
+    a, b = _chains(two_walks)
+    m = dataclasses.replace(two_walks, arrays=dict(two_walks.arrays),
+                            edges={k: e for k, e in two_walks.edges.items()
+                                   if two_walks.nodes[e.a].sequence == two_walks.nodes[e.b].sequence})
+    assert experience_labels(m) == {}  # nothing joins the experiences: nothing is known
+    m.set_aligned_links([(b[1], a[2], 1.0), (b[5], a[6], 1.0)])
+    labels = experience_labels(m)
+    assert labels[b[1]] == (0, tuple(sorted({a[1], a[2], a[3]})))  # the join and its neighbours
+    assert labels[a[2]] == (1, tuple(sorted({b[0], b[1], b[2]})))  # both ways
+    assert labels[b[3]] == (0, (a[3], a[4], a[5]))  # halfway between the joins, +-1 node
+    assert b[0] not in labels and b[6] not in labels  # outside the joined stretch: unknown
+    # joins at an impossible pace (4 keyframes of one walk, 10 nodes of the other) label nothing between
+    m.set_aligned_links([(b[1], a[0], 1.0), (b[5], a[10], 1.0)])
+    assert b[3] not in experience_labels(m)
+
+
+def test_an_appended_experience_calibrates_on_its_own_images(two_walks):
+    inline, pooled = fresh(two_walks), fresh(two_walks)
+    cal = calibrate_map(inline, queries=12, seed=3)
+    ff = cal.fitted_for
+    assert ff["experience_samples"] >= 5 and 0 < ff["experience_right"] <= ff["experience_samples"]
+    with ProcessExecutor(2) as ex:  # the same calibration from worker processes
+        assert calibrate_map(pooled, queries=12, seed=3, executor=ex) == cal

@@ -12,6 +12,13 @@ from a little aside (:func:`viewpoint_change`) under a random photometric change
 * **foreign** — mirrored left-right, another place of the same kind (its node and neighbours
   excluded): every answer is wrong.
 
+On a map of several experiences (``--append``) a fifth kind comes from the traversals themselves:
+
+* **other experience** — a keyframe of one experience, its image as taken, localized against
+  another experience alone; right when the answer is where the links between the two experiences
+  place it (:func:`experience_labels`). These are real queries of another traversal, the hard
+  case no change of a keyframe reproduces.
+
 The samples fit the single-frame model. Its aliased and foreign answers look like the wrong answers
 of real queries from another traversal (corridor: margin 2.1 vs 2.4 z-units, log-inliers 2.4 vs 2.7);
 its right answers are easier than real ones — what the map's own images cannot show is how hard
@@ -40,7 +47,7 @@ from topomap.parallel import Executor
 from topomap.photometric import apply_photometric, random_photometric
 
 __all__ = ["calibrate_map", "CalibrationSamples", "single_samples", "keyframe_samples", "keyframe_rng", "keyframe_image",
-           "viewpoint_change"]
+           "viewpoint_change", "experience_labels", "experience_queries", "experience_sample"]
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +59,11 @@ MAX_VIEW = 3.0
 ALIAS_HOPS = 2
 #: Why no calibration could be fitted is reported with this prefix (``topomap info`` shows it).
 NOT_CALIBRATED = "not calibrated"
+#: An unlinked keyframe of an appended experience is labelled from the nearest linked keyframes
+#: before and after it when they are at most this many keyframes apart (a short stretch of one pace).
+EXPERIENCE_SPAN = 8
+#: Other-experience samples per calibration, at most this many times ``queries`` (a seeded sample).
+EXPERIENCE_SAMPLES = 2
 
 
 class CalibrationSamples:
@@ -156,6 +168,92 @@ def keyframe_samples(loc: Localizer, node_id: int, rng: np.random.Generator) -> 
     return out
 
 
+def experience_labels(tmap: TopoMap) -> dict[int, tuple[int, tuple[int, ...]]]:
+    """Keyframes whose place in another experience is known: node -> (that experience, its nodes
+    that are right answers). A keyframe joined to another experience (loop edge or aligned link) is
+    at the nodes it is joined to and their neighbours there; one between two joined keyframes at most
+    :data:`EXPERIENCE_SPAN` apart, both joined into the same experience at a consistent pace, is where
+    the two joins interpolate to, +-1 node. Keyframes outside such stretches are not labelled."""
+    seq = {n: node.sequence for n, node in tmap.nodes.items()}
+    joins: dict[int, set[int]] = {}
+    pairs = [(e.a, e.b) for e in tmap.edges.values()] + [(a, b) for a, b, _ in tmap.aligned_links()]
+    for a, b in pairs:
+        if a in seq and b in seq and seq[a] != seq[b]:
+            joins.setdefault(a, set()).add(b)
+            joins.setdefault(b, set()).add(a)
+    if not joins:
+        return {}
+    chains: dict[int, list[int]] = {}
+    for n in sorted(seq):  # node ids follow build order within a sequence
+        chains.setdefault(seq[n], []).append(n)
+    pos = {n: i for chain in chains.values() for i, n in enumerate(chain)}
+    nbrs: dict[int, set[int]] = {}
+    for a, b in ((e.a, e.b) for e in tmap.edges.values()):
+        if seq.get(a) is not None and seq.get(a) == seq.get(b):
+            nbrs.setdefault(a, set()).add(b)
+            nbrs.setdefault(b, set()).add(a)
+
+    def target(n: int) -> tuple[int, float] | None:
+        """The one other experience ``n`` is joined to, and the median chain position there."""
+        others = {seq[m] for m in joins.get(n, ())}
+        if len(others) != 1:
+            return None
+        t = others.pop()
+        return t, float(np.median([pos[m] for m in joins[n]]))
+
+    out: dict[int, tuple[int, tuple[int, ...]]] = {}
+    for s, chain in chains.items():
+        anchored = [i for i, n in enumerate(chain) if target(n) is not None]
+        for i, n in enumerate(chain):
+            tj = target(n)
+            if tj is not None:
+                right = set(joins[n]) | {m for j in joins[n] for m in nbrs.get(j, ())}
+                out[n] = (tj[0], tuple(sorted(right)))
+                continue
+            k = int(np.searchsorted(anchored, i))
+            if k == 0 or k == len(anchored):
+                continue
+            i0, i1 = anchored[k - 1], anchored[k]
+            (t0, j0), (t1, j1) = target(chain[i0]), target(chain[i1])
+            # one experience, a pace of at most two of its nodes per keyframe either way
+            if t0 != t1 or i1 - i0 > EXPERIENCE_SPAN or abs(j1 - j0) > 2 * (i1 - i0) + 1:
+                continue
+            j = j0 + (j1 - j0) * (i - i0) / (i1 - i0)
+            other = chains[t0]
+            lo, hi = max(0, int(np.floor(j)) - 1), min(len(other) - 1, int(np.ceil(j)) + 1)
+            out[n] = (t0, tuple(other[lo : hi + 1]))
+    return out
+
+
+def experience_sample(loc: Localizer, node_id: int, label: tuple[int, tuple[int, ...]]) -> tuple[dict, bool, str] | None:
+    """The other-experience query of one labelled keyframe (:func:`experience_labels`): its image
+    localized against the labelled experience alone; ``None`` when the keyframe has no image."""
+    image = keyframe_image(loc.map, node_id)
+    if image is None:
+        return None
+    t, right = label
+    exclude = [n for n, node in loc.map.nodes.items() if node.sequence != t]
+    a = loc.localize_query(loc.prepare(image), exclude=exclude)
+    return a.evidence, a.node in set(right), "other experience"
+
+
+def experience_queries(tmap: TopoMap, queries: int, seed: int) -> list[tuple[int, tuple[int, tuple[int, ...]]]]:
+    """The labelled keyframes the calibration queries (a seeded sample of at most
+    :data:`EXPERIENCE_SAMPLES` x ``queries``), with their labels, in node order."""
+    labels = experience_labels(tmap)
+    with_images = [n for n in sorted(labels) if keyframe_image_stored(tmap, n)]
+    cap = EXPERIENCE_SAMPLES * queries
+    if len(with_images) > cap:
+        rng = np.random.default_rng((int(seed), 1, 0))  # a stream no keyframe_rng draws
+        with_images = sorted(rng.choice(with_images, cap, replace=False).tolist())
+    return [(int(n), labels[n]) for n in with_images]
+
+
+def keyframe_image_stored(tmap: TopoMap, node_id: int) -> bool:
+    n = tmap.nodes[node_id]
+    return n.image is not None or n.image_data is not None
+
+
 def single_samples(loc: Localizer, node_ids: list[int], seed: int) -> CalibrationSamples:
     """Nearby, left-out, aliased and foreign queries of the given keyframes, each keyframe's drawn
     from :func:`keyframe_rng` (see the module docstring)."""
@@ -176,12 +274,14 @@ class _SamplesTask:
     reference: dict
     node_ids: tuple[int, ...]
     seed: int
+    experience: tuple[tuple[int, tuple[int, tuple[int, ...]]], ...] = ()  # (node, label): experience_queries
 
 
-def _samples_task(task: _SamplesTask) -> tuple[str, list[tuple[dict, bool, str]]]:
+def _samples_task(task: _SamplesTask) -> tuple[str, list[tuple[dict, bool, str]], list[tuple[dict, bool, str]]]:
     loc = Localizer(task.map, task.config)
     loc.quality_reference = task.reference
-    return loc.mode, [s for nid in task.node_ids for s in keyframe_samples(loc, nid, keyframe_rng(task.seed, nid))]
+    keyframes = [s for nid in task.node_ids for s in keyframe_samples(loc, nid, keyframe_rng(task.seed, nid))]
+    return loc.mode, keyframes, [s for nid, label in task.experience if (s := experience_sample(loc, nid, label))]
 
 
 def _without_images(tmap: TopoMap, keep: set[int]) -> TopoMap:
@@ -192,17 +292,23 @@ def _without_images(tmap: TopoMap, keep: set[int]) -> TopoMap:
 
 
 def _parallel_samples(tmap: TopoMap, cfg: LocalizeConfig, reference: dict, node_ids: list[int], seed: int,
-                      executor: Executor) -> tuple[str, CalibrationSamples]:
-    """:func:`single_samples` with the keyframes split over ``executor``'s workers (a few shares per
-    worker, so one slow worker does not hold up the rest); the samples come back in keyframe order,
-    with the descriptor mode the workers' localizers chose."""
-    shares = [tuple(int(n) for n in part) for part in np.array_split(node_ids, min(len(node_ids), 2 * executor.workers))]
-    tasks = (_SamplesTask(_without_images(tmap, set(part)), cfg, reference, part, seed) for part in shares if part)
-    out, mode = CalibrationSamples(SINGLE_FEATURES), ""
+                      executor: Executor, experience: list = ()) -> tuple[str, CalibrationSamples]:
+    """:func:`single_samples` (and the ``experience`` queries) with the keyframes split over
+    ``executor``'s workers (a few shares per worker, so one slow worker does not hold up the rest);
+    the samples come back in keyframe order, with the descriptor mode the workers' localizers chose."""
+    n_shares = min(len(node_ids), 2 * executor.workers)
+    shares = [tuple(int(n) for n in part) for part in np.array_split(node_ids, n_shares)]
+    ex_shares = [tuple(experience[i] for i in idx) for idx in np.array_split(np.arange(len(experience)), n_shares)]
+    tasks = (_SamplesTask(_without_images(tmap, set(part) | {n for n, _ in ex}), cfg, reference, part, seed, ex)
+             for part, ex in zip(shares, ex_shares) if part or ex)
+    out, mode, later = CalibrationSamples(SINGLE_FEATURES), "", []
     # each share is a copy of the map: no more in flight than there are workers to hold them
-    for mode, samples in executor.map(_samples_task, tasks, window=executor.workers):
-        for evidence, right, kind in samples:
+    for mode, keyframes, other in executor.map(_samples_task, tasks, window=executor.workers):
+        for evidence, right, kind in keyframes:
             out.add(evidence, right, kind)
+        later += other
+    for evidence, right, kind in later:  # after every keyframe sample, as in the serial order
+        out.add(evidence, right, kind)
     return mode, out
 
 
@@ -223,20 +329,27 @@ def calibrate_map(tmap: TopoMap, *, queries: int = 60, seed: int = 0, config: Lo
                            f"(it has {len(with_images)}; maps built with --no-images cannot be calibrated)")
     chosen = sorted(rng.choice(with_images, min(queries, len(with_images)), replace=False).tolist())
     reference = quality_reference([image_quality(keyframe_image(tmap, n)) for n in chosen])
+    experience = experience_queries(tmap, queries, seed)
     if executor is not None and executor.workers > 1:
         # the workers build the localizers: one here as well would hold a second index of the map
-        mode, single = _parallel_samples(tmap, cfg, reference, chosen, seed, executor)
+        mode, single = _parallel_samples(tmap, cfg, reference, chosen, seed, executor, experience)
     else:
         loc = Localizer(tmap, cfg)
         # evidence of image quality is relative to the map's keyframes: install the reference first
         loc.quality_reference = reference
         mode, single = loc.mode, single_samples(loc, chosen, seed)
+        for nid, label in experience:
+            if (sample := experience_sample(loc, nid, label)) is not None:
+                single.add(*sample)
     if len(single) < 20 or single.y.all() or not single.y.any():
         raise CalibrationError(f"{NOT_CALIBRATED}: its keyframes gave {len(single)} usable samples, "
                            f"{int(single.y.sum())} of them right; need both right and wrong answers")
     single_model = Calibrator.fit(SINGLE_FEATURES, single.x, single.y)
+    kinds = np.array(single.kinds)
+    other = kinds == "other experience"
     fitted_for = {"nodes": len(tmap.nodes), "descriptor": mode, "samples": len(single),
-                  "right": int(single.y.sum()), "seed": seed}
+                  "right": int(single.y.sum()), "seed": seed,
+                  "experience_samples": int(other.sum()), "experience_right": int(single.y[other].sum())}
     cal = Calibration(single_model, reference, fitted_for)
     tmap.meta[CALIBRATION_KEY] = cal.to_dict()
     return cal
