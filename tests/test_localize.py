@@ -506,6 +506,54 @@ def test_an_appended_experience_is_linked_and_answers_as_one_place(route, tmp_pa
     assert linked and all(m.nodes[place[n]].sequence == 0 for n in linked)  # the shared place is the first experience's
 
 
+def test_each_experience_is_centred_on_its_own_median_on_one_scale():
+    from topomap.localize import MIN_EXPERIENCE_NODES, _robust_z, _robust_z_by
+
+    rng = np.random.default_rng(0)
+    a = rng.normal(0.0, 1.0, 40)
+    x = np.concatenate([a, a + 5.0, [9.0] * (MIN_EXPERIENCE_NODES - 1)])  # the second shifted, a third too small
+    labels = np.repeat([0, 1, 2], [40, 40, MIN_EXPERIENCE_NODES - 1])
+    z = _robust_z_by(x, labels)
+    assert np.allclose(z[:40], z[40:80])  # an experience-wide offset (its conditions) is gone
+    whole = _robust_z(x)
+    assert np.allclose(np.ptp(z[:40]), np.ptp(whole[:40]))  # the spread is the whole map's scale
+    assert np.allclose(z[80:], whole[80:])  # a handful of nodes says little of an offset: left alone
+    assert np.array_equal(_robust_z_by(x, None), whole)
+
+
+@pytest.mark.slow
+def test_an_appended_experience_of_other_places_does_not_attract_its_conditions(tmp_path_factory, tmp_path):
+    """The corridor map with the first half of the query run appended, queried with the second half:
+    the query frames resemble the appended ones (same light, same camera) more than the first
+    experience's right places; standardised per experience, most answers are the right place."""
+    root = dataset("corridor")
+    q = list(open_sequence(root / "query"))
+    write_sequence(tmp_path / "first", [f.image for f in q[:56]])
+    base = load_map(corridor_map_file(tmp_path_factory))
+    quick = dataclasses.replace(base.config, calibration=CalibrationConfig(enabled=False))  # not what is tested
+    m = build_map(tmp_path / "first", base=dataclasses.replace(base, config=quick))
+    truth = read_correspondences(root / "ground_truth.csv", m)
+    # an appended node shows the reference frames its own frames (query 0-55 by name) match
+    first = {f"img{i}.png": f.name for i, f in enumerate(q[:56])}
+    reach: dict[int, set[str]] = {n: set() for n in m.nodes}
+    for f in m.frames:
+        name = first.get(f.source)
+        reach[f.node] |= set(truth.matches[name]) if m.nodes[f.node].sequence == 1 and name else {f.source}
+    def answers(per_experience: bool):
+        loc = Localizer(m)
+        assert loc._experience_labels is not None
+        if not per_experience:
+            loc._experience_labels = None  # one median for the whole map, as before
+        res = [loc.localize(f.image) for f in q[56:]]
+        right = [bool(reach[r.node] & truth.matches[f.name]) for f, r in zip(q[56:], res)]
+        assert not any(r.localized and not ok for r, ok in zip(res, right))
+        return np.mean(right), np.mean([r.experience == 1 for r in res])
+
+    (top1, appended), (top1_before, appended_before) = answers(True), answers(False)
+    # measured: 0.436 -> 0.564 right, 60 % -> 36 % of the answers in the appended experience
+    assert top1 >= top1_before + 0.08 and appended <= appended_before - 0.15, (top1_before, appended_before, top1, appended)
+
+
 @pytest.mark.parametrize("calibration", [
     {"version": 1, "single": {"features": ["margin"], "coef": ["nan"], "intercept": 0}, "reference": {}},
     {"version": 1, "single": {"features": ["rm -rf"], "coef": [1.0], "intercept": 0}, "reference": {}},

@@ -80,6 +80,8 @@ MIN_FEATURES_FOR_BOW = 100
 WORD_CACHE_NODES = 4096
 #: A localization lists at least this many candidates, whatever the verified shortlist's size.
 MIN_CANDIDATES = 10
+#: An experience of fewer nodes is standardised with the whole map (a median of a few scores says little).
+MIN_EXPERIENCE_NODES = 16
 
 #: Appearance signals a localizer can rank nodes by (``--descriptor``).
 DESCRIPTORS = {
@@ -183,10 +185,29 @@ def _robust_z(x: np.ndarray) -> np.ndarray:
     """(x - median) / (1.4826 MAD), with a floor on the scale so near-constant scores stay ~0."""
     if len(x) == 0:
         return x
+    return (x - float(np.median(x))) / _robust_scale(x)
+
+
+def _robust_scale(x: np.ndarray) -> float:
+    """1.4826 MAD of ``x``, floored at a quarter of its standard deviation (and 1e-6)."""
     med = float(np.median(x))
-    mad = 1.4826 * float(np.median(np.abs(x - med)))
-    scale = max(mad, 0.25 * float(np.std(x)), 1e-6)
-    return (x - med) / scale
+    return max(1.4826 * float(np.median(np.abs(x - med))), 0.25 * float(np.std(x)), 1e-6)
+
+
+def _robust_z_by(x: np.ndarray, labels: np.ndarray | None) -> np.ndarray:
+    """:func:`_robust_z` with each group of ``labels`` (experiences) of at least
+    :data:`MIN_EXPERIENCE_NODES` rows centred on its own median, on the whole of ``x``'s scale: an
+    experience's offset is removed (its conditions), its spread kept (a tight group scaled on its own
+    would turn small differences into large z)."""
+    z = _robust_z(x)
+    if labels is None:
+        return z
+    scale = _robust_scale(x)
+    for g in np.unique(labels):
+        rows = np.flatnonzero(labels == g)
+        if len(rows) >= MIN_EXPERIENCE_NODES:
+            z[rows] = (x[rows] - float(np.median(x[rows]))) / scale
+    return z
 
 
 class Localizer:
@@ -234,6 +255,12 @@ class Localizer:
         self._desc_stats: tuple[np.ndarray, np.ndarray] | None = None  # computed on first use (sequence mode)
         self._adjacency = _adjacency(tmap, self.node_ids, self._row)
         self._place = tmap.place_ids()
+        # each experience's scores are standardised on their own: a query taken under one experience's
+        # conditions resembles all of that experience's nodes a little (light, camera, season), which
+        # would otherwise outscore the right place of another (docs/localization.md, Experiences)
+        seqs = np.array([tmap.nodes[int(n)].sequence for n in self.node_ids])
+        counts = np.unique(seqs, return_counts=True)[1]
+        self._experience_labels = seqs if int((counts >= MIN_EXPERIENCE_NODES).sum()) >= 2 else None
         # guided matching: groups = vocabulary-tree nodes at the deepest level with <= match_groups nodes
         self._vocabulary = tmap.index.vocabulary if tmap.index is not None else None
         self.guided = self.config.guided_matching and self._vocabulary is not None
@@ -290,7 +317,7 @@ class Localizer:
         score = np.zeros(len(self.node_ids))
         if self.use_bow:
             bow = self.map.index.scores(q.features, self._query_words(q), self.config.bow_max_postings)
-            score += _robust_z(bow[self._bow_rows].astype(np.float64))
+            score += _robust_z_by(bow[self._bow_rows].astype(np.float64), self._experience_labels)
         # fused on a big map: whole-image descriptors only for the bag of words' best nodes (a
         # thumbnail distance to all of 100k nodes costs ~35 ms); the others get the lowest score of those
         rows = None
@@ -302,7 +329,7 @@ class Localizer:
                 g = hog_descriptor(make_thumbnail(q.image, self.map.config.thumbnail_px), self.global_descriptors.size)
             # no hub correction here: standardising by each node's own similarities costs the
             # corridor's sequence mode (see docs/localization.md)
-            z = _robust_z(self.global_descriptors.similarity(g, rows).astype(np.float64))
+            z = _robust_z_by(self.global_descriptors.similarity(g, rows).astype(np.float64), self._labels_of(rows))
             score += z if rows is None else _spread(z, rows, len(score))
         # hog: on a degraded frame the sequence filter's scores blend the thumbnail in (standardised per
         # node it carries sequences where HOG dies; a single frame keeps HOG: unstandardised, the
@@ -319,13 +346,19 @@ class Localizer:
             if self._desc_stats is None:
                 self._desc_stats = _distance_statistics(self._descriptors)
             mu, sd = self._desc_stats
-            z = _robust_z(-((d - mu) / sd if rows is None else (d - mu[rows]) / sd[rows]))
+            z = _robust_z_by(-((d - mu) / sd if rows is None else (d - mu[rows]) / sd[rows]), self._labels_of(rows))
             hub = z if rows is None else _spread(z, rows, len(score))
         if not self.use_thumbnail:  # hog, the thumbnail weighted in by the frame's degradation
             return score, (1.0 - w) * score + w * hub
-        z = _robust_z(-d)
+        z = _robust_z_by(-d, self._labels_of(rows))
         plain = score + (z if rows is None else _spread(z, rows, len(score)))
         return plain, (None if hub is None else score + hub)
+
+    def _labels_of(self, rows: np.ndarray | None) -> np.ndarray | None:
+        """Experience labels of ``rows`` (all rows when ``None``) for :func:`_robust_z_by`."""
+        if self._experience_labels is None or rows is None:
+            return self._experience_labels
+        return self._experience_labels[rows]
 
     def degradation(self, q: Query) -> float:
         """How much worse the frame is than the map's keyframes, in [0, 1): ``1 - 1 / (1 + low_snr +
