@@ -208,6 +208,21 @@ def test_identical_frames_make_one_node(tmp_path):
     assert len(m.nodes) == 1 and not m.edges and [f.node for f in m.frames] == [0] * 5
 
 
+def test_featureless_frames_join_the_last_keyframe_with_features(tmp_path):
+    """A turn facing blank paint: frames too plain to verify anything are no keyframes (no image
+    could certify them as a goal); they are represented by the last view that had features."""
+    frames = sequence(8, step_px=60)
+    blank = np.full_like(frames[0], 128)
+    write_sequence(tmp_path, frames[:4] + [blank] * 3 + frames[4:])
+    m = build_map(tmp_path, FAST)
+    assert all(len(n.features) >= FAST.match.min_inliers for n in m.nodes.values())
+    assert all(f.node is not None for f in m.frames)
+    # the blank frames belong to the node of the frame before them (its keyframe, or it became one)
+    before = m.frames[3].node
+    assert [f.node for f in m.frames[4:7]] == [before] * 3
+    assert consecutive_nodes_joined(m)
+
+
 def test_single_image(tmp_path):
     cv2.imwrite(str(tmp_path / "one.png"), sequence(1)[0])
     m = build_map(tmp_path / "one.png", FAST)

@@ -14,7 +14,10 @@ keyframe's node. When the matches fall below the threshold (or moved too far), t
 still matched well becomes the next keyframe (so
 consecutive keyframes keep plenty of common, verified features — servoing between them stays
 feasible, far above the 3-point minimum of docs/theory.md section 3) and the frame is matched again
-against it; if even that fails, the frame itself starts a node. The decisions are sequential, but
+against it; if even that fails, the frame itself starts a node. A frame with fewer keypoints than
+a verification needs (``match.min_inliers``: a turn facing blank paint) never becomes a keyframe: no
+image could certify it as a goal, so it is represented by the last keyframe that had features (the
+same spot, when the teach run turned in place). The decisions are sequential, but
 with several workers the verifications of the next frames against the current keyframe are run
 ahead, in parallel (speculatively: those past a keyframe change are dropped), which gives the
 same keyframes as one frame at a time.
@@ -280,6 +283,13 @@ def _select_keyframes(frames: Iterator[PreparedFrame], tmap: TopoMap, config: Bu
         if keyframe is None:
             start_keyframe(cand, new_node(cand, None, None))
             last_good = None
+        elif len(frame.features) < config.match.min_inliers:
+            # too few keypoints to ever verify (a turn facing blank paint): the frame joins the last view
+            # that had features instead of becoming a keyframe no image could certify
+            if last_good is not None:
+                start_keyframe(last_good, new_node(last_good, keyframe_node, last_good.link))
+                last_good = None
+            tmap.frames[fid] = replace(tmap.frames[fid], node=keyframe_node)
         else:
             spec.ahead(buffer)
             v = spec.result(frame)
