@@ -4,6 +4,7 @@ same in-process and over worker processes, and a keyframe's samples do not depen
 from __future__ import annotations
 
 import dataclasses
+import pickle
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ from map_synth import scene, window, write_sequence
 from topomap.build import build_map
 from topomap.config import BuildConfig, FeatureConfig, LocalizeConfig
 from topomap.localize import Localizer
-from topomap.parallel import ProcessExecutor
+from topomap.parallel import DaskExecutor, InlineExecutor, ProcessExecutor
 from topomap.self_supervision import (
     _without_images,
     calibrate_map,
@@ -65,3 +66,40 @@ def test_a_worker_gets_the_images_of_its_keyframes_only(walk_map):
     assert {n for n, v in light.nodes.items() if v.image_data is not None} == keep and light.frames == []
     assert all(light.nodes[n].features is walk_map.nodes[n].features for n in walk_map.nodes)
     assert all(v.image_data is not None for v in walk_map.nodes.values())  # the map itself keeps them
+
+
+class RecordingExecutor(InlineExecutor):
+    """In this process, as if it had four workers, sharing values as the process pool does (a file
+    each worker reads once); records the pickled size of every task and each shared value."""
+
+    workers = 4
+
+    def __init__(self):
+        self.task_bytes: list[int] = []
+        self.shared_bytes: list[int] = []
+
+    def shared(self, value):
+        self.shared_bytes.append(len(pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)))
+        return ProcessExecutor.shared(self, value)
+
+    def map(self, fn, items, *, window=None):
+        assert window is not None and window <= self.workers  # no more shares in flight than workers
+        for item in items:
+            self.task_bytes.append(len(pickle.dumps(item, protocol=pickle.HIGHEST_PROTOCOL)))
+            yield fn(item)
+
+
+def test_the_map_goes_to_the_workers_once_not_with_every_share(walk_map):
+    ex = RecordingExecutor()
+    cal = calibrate_map(fresh(walk_map), queries=12, seed=3, executor=ex)
+    assert cal == calibrate_map(fresh(walk_map), queries=12, seed=3)
+    assert len(ex.shared_bytes) == 1 and len(ex.task_bytes) == 8  # one map, 8 shares of 1-2 keyframes
+    map_bytes = len(pickle.dumps(walk_map, protocol=pickle.HIGHEST_PROTOCOL))
+    assert ex.shared_bytes[0] > map_bytes / 10  # the shared value is the map (without most images)
+    assert max(ex.task_bytes) < 4000 < map_bytes / 100  # a share is node ids and the configuration
+
+
+def test_the_same_calibration_on_dask(walk_map):
+    with DaskExecutor(None, 2, processes=False) as ex:
+        cal = calibrate_map(fresh(walk_map), queries=12, seed=3, executor=ex)
+    assert cal == calibrate_map(fresh(walk_map), queries=12, seed=3)
