@@ -6,6 +6,7 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import pickle
 import sqlite3
 
 import numpy as np
@@ -16,7 +17,8 @@ from map_synth import FAST, write_out_and_back
 from topomap.build import build_map
 from topomap.camera import load_camera
 from topomap.errors import ClusterError, ConfigError, DatasetError
-from topomap.parallel import DaskExecutor, InlineExecutor, ProcessExecutor, available_cores, make_executor
+from topomap.parallel import (DaskExecutor, InlineExecutor, ProcessExecutor, available_cores, make_executor,
+                              shared_value)
 from topomap.store import save_map
 
 
@@ -32,6 +34,12 @@ def fail_on_three(x: int) -> int:
 
 def pid_of(_x: int) -> int:
     return os.getpid()
+
+
+def read_shared(item) -> tuple[int, int, int, int]:
+    shared, i = item
+    value = shared_value(shared)
+    return i, int(value.sum()), os.getpid(), id(value)
 
 
 @pytest.fixture(scope="module")
@@ -75,6 +83,19 @@ def test_map_consumes_lazily(pool):
     out = pool.map(square, source(), window=4)
     assert [next(out) for _ in range(5)] == [0, 1, 4, 9, 16]
     assert len(taken) <= 5 + 4
+
+
+@pytest.mark.parametrize("which", ["inline", "pool", "dask"])
+def test_a_shared_value_is_read_once_per_worker(which, pool, dask_threads):
+    ex = {"inline": InlineExecutor(), "pool": pool, "dask": dask_threads}[which]
+    value = np.arange(100_000)
+    with ex.shared(value) as shared:
+        if which == "pool":
+            assert len(pickle.dumps(shared)) < 1000  # what a task carries: a reference, not the value
+        out = list(ex.map(read_shared, ((shared, i) for i in range(12))))
+    assert [(i, s) for i, s, _, _ in out] == [(i, int(value.sum())) for i in range(12)]
+    copies = {(pid, ident) for _, _, pid, ident in out}
+    assert len(copies) == len({pid for pid, _ in copies})  # one copy per worker process, whatever its tasks
 
 
 def test_pool_runs_in_other_processes(pool):

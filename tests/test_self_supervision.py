@@ -4,15 +4,17 @@ same in-process and over worker processes, and a keyframe's samples do not depen
 from __future__ import annotations
 
 import dataclasses
+import pickle
 
 import numpy as np
 import pytest
 from map_synth import scene, window, write_sequence
 
 from topomap.build import build_map
+from topomap.store import load_map, save_map
 from topomap.config import BuildConfig, FeatureConfig, LocalizeConfig
 from topomap.localize import Localizer
-from topomap.parallel import ProcessExecutor
+from topomap.parallel import DaskExecutor, InlineExecutor, ProcessExecutor
 from topomap.self_supervision import (
     _without_images,
     calibrate_map,
@@ -73,7 +75,9 @@ def two_walks(tmp_path_factory, walk_map):
     """The walk, and the same walk again a little lower and aside appended as a second experience."""
     folder = tmp_path_factory.mktemp("walk2")
     write_sequence(folder, [window(scene(4, width=4000), x + 40.0, y=60.0) for x in XS])
-    m = build_map(folder, CONFIG, base=fresh(walk_map))
+    # the append extends the base's nodes, edges and index in place: a copy read back from a file
+    base = load_map(save_map(walk_map, tmp_path_factory.mktemp("walk-copy") / "walk.topomap"))
+    m = build_map(folder, CONFIG, base=base)
     assert m.experiences()[1]["links"], "the second walk should be joined to the first by loop closures"
     return m
 
@@ -106,3 +110,40 @@ def test_an_appended_experience_calibrates_on_its_own_images(two_walks):
     assert ff["experience_samples"] >= 5 and 0 < ff["experience_right"] <= ff["experience_samples"]
     with ProcessExecutor(2) as ex:  # the same calibration from worker processes
         assert calibrate_map(pooled, queries=12, seed=3, executor=ex) == cal
+
+
+class RecordingExecutor(InlineExecutor):
+    """In this process, as if it had four workers, sharing values as the process pool does (a file
+    each worker reads once); records the pickled size of every task and each shared value."""
+
+    workers = 4
+
+    def __init__(self):
+        self.task_bytes: list[int] = []
+        self.shared_bytes: list[int] = []
+
+    def shared(self, value):
+        self.shared_bytes.append(len(pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)))
+        return ProcessExecutor.shared(self, value)
+
+    def map(self, fn, items, *, window=None):
+        assert window is not None and window <= self.workers  # no more shares in flight than workers
+        for item in items:
+            self.task_bytes.append(len(pickle.dumps(item, protocol=pickle.HIGHEST_PROTOCOL)))
+            yield fn(item)
+
+
+def test_the_map_goes_to_the_workers_once_not_with_every_share(walk_map):
+    ex = RecordingExecutor()
+    cal = calibrate_map(fresh(walk_map), queries=12, seed=3, executor=ex)
+    assert cal == calibrate_map(fresh(walk_map), queries=12, seed=3)
+    assert len(ex.shared_bytes) == 1 and len(ex.task_bytes) == 8  # one map, 8 shares of 1-2 keyframes
+    map_bytes = len(pickle.dumps(walk_map, protocol=pickle.HIGHEST_PROTOCOL))
+    assert ex.shared_bytes[0] > map_bytes / 10  # the shared value is the map (without most images)
+    assert max(ex.task_bytes) < 4000 < map_bytes / 100  # a share is node ids and the configuration
+
+
+def test_the_same_calibration_on_dask(walk_map):
+    with DaskExecutor(None, 2, processes=False) as ex:
+        cal = calibrate_map(fresh(walk_map), queries=12, seed=3, executor=ex)
+    assert cal == calibrate_map(fresh(walk_map), queries=12, seed=3)

@@ -191,6 +191,14 @@ def _verify_task(args: tuple[Features, Features, MatchConfig]) -> Verification:
     return _verify_pair(*args)
 
 
+def _for_motion(v: Verification) -> Verification:
+    """What the motion stage reads of an edge's verification (:func:`~topomap.relative_motion.pair_motion`:
+    whether it verified and its inlier matches), without the outliers the build no longer needs;
+    its ``inlier_ratio`` is then 1."""
+    inliers = v.inlier_matches  # copies: the full match arrays are freed with ``v``
+    return replace(v, matches=inliers, inlier_mask=np.ones(len(inliers), bool))
+
+
 def _is_kept(v: Verification, keyframe: Features, cfg: BuildConfig) -> bool:
     """The frame stays with the keyframe: enough verified matches, moved little across the image."""
     need = max(cfg.keyframe_min_inliers, int(np.ceil(cfg.keyframe_min_ratio * len(keyframe))))
@@ -360,7 +368,8 @@ def build_map(
     total = len(seq)
     skipped: list[tuple[str, str]] = []
     input_size: list[tuple[int, int] | None] = [None]
-    verified: dict[tuple[int, int], Verification] = {}  # (x, y): verify(x, y) of the new edges, for the motion stage
+    # (x, y): verify(x, y) of the new edges, inliers only (_for_motion), for the motion stage
+    verified: dict[tuple[int, int], Verification] = {}
 
     # the first readable frame (read here) fixes the working size of a new map
     head_frames, first = _first_readable(iter(seq), config)
@@ -396,7 +405,7 @@ def build_map(
             tmap.add_edge(Edge(prev_node, nid, EdgeKind.SEQUENTIAL, v.inliers if v else 0,
                                v.similarity if v else 0.0, v.flow_px if v else 0.0))
             if v is not None:
-                verified[(prev_node, nid)] = v
+                verified[(prev_node, nid)] = _for_motion(v)
         return nid
 
     def on_frame(f: PreparedFrame) -> None:
@@ -622,8 +631,8 @@ def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progres
                  executor: Executor | None = None, verified: dict | None = None) -> int:
     """The loops stage: verify the appearance shortlist of every new node (pairs in parallel on
     ``executor``, results in order); add ``loop`` edges, their verifications to ``verified``
-    (``(x, y): verify(x, y)``). Returns how many. Shortlists are made as the verifications ask for
-    work (a few nodes ahead), not all at once."""
+    (``(x, y): verify(x, y)``, inliers only: :func:`_for_motion`). Returns how many. Shortlists are
+    made as the verifications ask for work (a few nodes ahead), not all at once."""
     if tmap.index is None or len(tmap.nodes) < 3:
         return 0
     executor = executor or InlineExecutor()
@@ -656,7 +665,7 @@ def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progres
         if v.inliers >= cfg.loop_min_inliers and v.inlier_ratio >= cfg.loop_min_inlier_ratio:
             tmap.add_edge(Edge(a, b, EdgeKind.LOOP, v.inliers, v.similarity, v.flow_px))
             if verified is not None:
-                verified[(a, b)] = v
+                verified[(a, b)] = _for_motion(v)
             added += 1
         if last:
             node_done()

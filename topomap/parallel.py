@@ -22,14 +22,22 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import os
+import pickle
+import tempfile
+import threading
+import uuid
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Protocol
 
 from topomap.errors import ClusterError, ConfigError
 
-__all__ = ["Executor", "InlineExecutor", "ProcessExecutor", "DaskExecutor", "make_executor", "available_cores"]
+__all__ = ["Executor", "InlineExecutor", "ProcessExecutor", "DaskExecutor", "make_executor", "available_cores",
+           "shared_value", "worker_local"]
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +64,47 @@ def _init_worker() -> None:
     cv2.setNumThreads(1)
 
 
+@dataclass(frozen=True)
+class _Spooled:
+    """A shared value written once to a local file, which each worker process reads once (:func:`shared_value`)."""
+
+    token: str
+    path: str
+
+
+#: This process's copy of the last spooled value it read: ``(token, value)``.
+_SPOOLED: list[tuple[str, Any]] = []
+_SPOOLED_LOCK = threading.Lock()
+_LOCAL = threading.local()
+
+
+def shared_value(shared: tuple) -> Any:
+    """The value behind a reference from :meth:`Executor.shared`, in a task: read at most once per
+    worker process (later tasks get the same object back; treat it as read-only)."""
+    _token, ref = shared
+    if not isinstance(ref, _Spooled):
+        return ref  # in-process, or a Dask future the worker has already replaced by its value
+    with _SPOOLED_LOCK:
+        if not _SPOOLED or _SPOOLED[0][0] != ref.token:
+            _SPOOLED.clear()  # only the latest shared value: an earlier stage's is not read again
+            with open(ref.path, "rb") as f:
+                _SPOOLED.append((ref.token, pickle.load(f)))
+        return _SPOOLED[0][1]
+
+
+def worker_local(shared: tuple, key: str, make: Callable[[Any], Any]) -> Any:
+    """``make(shared_value(shared))``, made once per worker thread and shared value and kept for the
+    later tasks of that thread (the last one per ``key``): e.g. a localizer over a shared map."""
+    token = shared[0]
+    memo = getattr(_LOCAL, "memo", None)
+    if memo is None:
+        memo = _LOCAL.memo = {}
+    if key not in memo or memo[key][0] != token:
+        memo.pop(key, None)  # the previous value goes before the next is made
+        memo[key] = (token, make(shared_value(shared)))
+    return memo[key][1]
+
+
 class Executor:
     """Runs pure functions, possibly elsewhere. ``workers``: how many calls run at once;
     ``remote``: the workers may not share this process's file system view (Dask)."""
@@ -79,6 +128,14 @@ class Executor:
                 yield pending.popleft().result()
         while pending:
             yield pending.popleft().result()
+
+    @contextmanager
+    def shared(self, value: Any) -> Iterator[tuple]:
+        """``value`` for the workers of the tasks submitted inside the ``with``, sent once per worker
+        instead of in every task: yields a small reference (a plain tuple) to put in the tasks'
+        arguments, which a task turns back into the value with :func:`shared_value`. Here (workers
+        in this process) the reference holds the value itself."""
+        yield (uuid.uuid4().hex, value)
 
     def close(self) -> None:
         pass
@@ -148,6 +205,17 @@ class ProcessExecutor(Executor):
     def submit(self, fn: Callable, *args) -> _Future:
         return self._pool.submit(fn, *args)
 
+    @contextmanager
+    def shared(self, value: Any) -> Iterator[tuple]:
+        """See :meth:`Executor.shared`: the value is pickled once, streamed to a private temporary
+        file (deleted when the ``with`` ends; never part of a map) that each worker reads once."""
+        with tempfile.TemporaryDirectory(prefix="topomap-shared-") as tmp:
+            path = Path(tmp) / "value.pickle"
+            with open(path, "wb") as f:  # streamed: no second copy of the value in this process
+                pickle.dump(value, f, protocol=pickle.HIGHEST_PROTOCOL)
+            token = uuid.uuid4().hex
+            yield (token, _Spooled(token, str(path)))
+
     def worker_pids(self) -> list[int]:
         """Process ids of the live workers (for memory accounting: they are not this process's children)."""
         return sorted(p.pid for p in (self._pool._processes or {}).values() if p.pid is not None)
@@ -201,6 +269,16 @@ class DaskExecutor(Executor):
 
     def submit(self, fn: Callable, *args) -> _Future:
         return self._client.submit(fn, *args, pure=False)
+
+    @contextmanager
+    def shared(self, value: Any) -> Iterator[tuple]:
+        """See :meth:`Executor.shared`: scattered to every worker once (they may not share a file
+        system with this process); Dask hands each task its worker's copy in place of the future."""
+        future = self._client.scatter(value, broadcast=True, hash=False)
+        try:
+            yield (uuid.uuid4().hex, future)
+        finally:
+            future.release()
 
     def describe(self) -> str:
         return f"dask at {self.address}, {self.workers} worker thread{'s' if self.workers != 1 else ''}"

@@ -43,7 +43,7 @@ from topomap.errors import CalibrationError
 from topomap.graph import TopoMap
 from topomap.images import decode_image
 from topomap.localize import Localizer
-from topomap.parallel import Executor
+from topomap.parallel import Executor, worker_local
 from topomap.photometric import apply_photometric, random_photometric
 
 __all__ = ["calibrate_map", "CalibrationSamples", "single_samples", "keyframe_samples", "keyframe_rng", "keyframe_image",
@@ -266,10 +266,10 @@ def single_samples(loc: Localizer, node_ids: list[int], seed: int) -> Calibratio
 
 @dataclass(frozen=True)
 class _SamplesTask:
-    """One worker's share of the calibration queries: ``node_ids`` of ``map`` (which holds the images
-    of those keyframes only), localized with ``config`` against the keyframes' ``reference`` quality."""
+    """One share of the calibration queries: ``node_ids`` of the shared map (``shared``, from
+    :meth:`Executor.shared`: the map with the images of the chosen keyframes only), localized with
+    ``config`` against the keyframes' ``reference`` quality."""
 
-    map: TopoMap
     config: LocalizeConfig
     reference: dict
     node_ids: tuple[int, ...]
@@ -277,15 +277,25 @@ class _SamplesTask:
     experience: tuple[tuple[int, tuple[int, tuple[int, ...]]], ...] = ()  # (node, label): experience_queries
 
 
-def _samples_task(task: _SamplesTask) -> tuple[str, list[tuple[dict, bool, str]], list[tuple[dict, bool, str]]]:
-    loc = Localizer(task.map, task.config)
-    loc.quality_reference = task.reference
+def _worker_localizer(shared: tuple, task: _SamplesTask) -> Localizer:
+    def make(tmap: TopoMap) -> Localizer:
+        loc = Localizer(tmap, task.config)
+        loc.quality_reference = task.reference
+        return loc
+
+    # one localizer per worker over its one copy of the map, reused by the worker's later shares
+    return worker_local(shared, "calibration localizer", make)
+
+
+def _samples_task(item: tuple[tuple, _SamplesTask]) -> tuple[str, list[tuple[dict, bool, str]], list[tuple[dict, bool, str]]]:
+    shared, task = item
+    loc = _worker_localizer(shared, task)
     keyframes = [s for nid in task.node_ids for s in keyframe_samples(loc, nid, keyframe_rng(task.seed, nid))]
     return loc.mode, keyframes, [s for nid, label in task.experience if (s := experience_sample(loc, nid, label))]
 
 
 def _without_images(tmap: TopoMap, keep: set[int]) -> TopoMap:
-    """A shallow copy of ``tmap`` for a worker: keyframe images only of ``keep``, no frame records
+    """A shallow copy of ``tmap`` for the workers: keyframe images only of ``keep``, no frame records
     (localization reads neither; the images are most of a map's bytes)."""
     nodes = {nid: n if nid in keep else dataclasses.replace(n, image=None, image_data=None) for nid, n in tmap.nodes.items()}
     return dataclasses.replace(tmap, nodes=nodes, frames=[], sequences=[])
@@ -295,18 +305,19 @@ def _parallel_samples(tmap: TopoMap, cfg: LocalizeConfig, reference: dict, node_
                       executor: Executor, experience: list = ()) -> tuple[str, CalibrationSamples]:
     """:func:`single_samples` (and the ``experience`` queries) with the keyframes split over
     ``executor``'s workers (a few shares per worker, so one slow worker does not hold up the rest);
-    the samples come back in keyframe order, with the descriptor mode the workers' localizers chose."""
+    the map goes to each worker once (:meth:`Executor.shared`), the shares carry only node ids. The
+    samples come back in keyframe order, with the descriptor mode the workers' localizers chose."""
     n_shares = min(len(node_ids), 2 * executor.workers)
     shares = [tuple(int(n) for n in part) for part in np.array_split(node_ids, n_shares)]
     ex_shares = [tuple(experience[i] for i in idx) for idx in np.array_split(np.arange(len(experience)), n_shares)]
-    tasks = (_SamplesTask(_without_images(tmap, set(part) | {n for n, _ in ex}), cfg, reference, part, seed, ex)
-             for part, ex in zip(shares, ex_shares) if part or ex)
+    keep = set(node_ids) | {n for n, _ in experience}
     out, mode, later = CalibrationSamples(SINGLE_FEATURES), "", []
-    # each share is a copy of the map: no more in flight than there are workers to hold them
-    for mode, keyframes, other in executor.map(_samples_task, tasks, window=executor.workers):
-        for evidence, right, kind in keyframes:
-            out.add(evidence, right, kind)
-        later += other
+    with executor.shared(_without_images(tmap, keep)) as shared:
+        tasks = ((shared, _SamplesTask(cfg, reference, part, seed, ex)) for part, ex in zip(shares, ex_shares) if part or ex)
+        for mode, keyframes, other in executor.map(_samples_task, tasks, window=executor.workers):
+            for evidence, right, kind in keyframes:
+                out.add(evidence, right, kind)
+            later += other
     for evidence, right, kind in later:  # after every keyframe sample, as in the serial order
         out.add(evidence, right, kind)
     return mode, out
