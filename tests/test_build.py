@@ -17,7 +17,7 @@ from map_synth import FAST, FRAME_SIZE, scene, sequence, window, write_out_and_b
 import topomap.build as build_mod
 from topomap.build import MIN_IMAGE_PX, BuildProgress, build_index, build_map
 from topomap.camera import CameraIntrinsics, load_camera
-from topomap.config import BuildConfig, FeatureConfig
+from topomap.config import BuildConfig, CalibrationConfig, FeatureConfig
 from topomap.errors import ConfigError, DatasetError
 from topomap.features import extract
 from topomap.graph import EdgeKind, TopoMap
@@ -221,6 +221,17 @@ def test_featureless_frames_join_the_last_keyframe_with_features(tmp_path):
     before = m.frames[3].node
     assert [f.node for f in m.frames[4:7]] == [before] * 3
     assert consecutive_nodes_joined(m)
+
+
+@pytest.mark.slow
+def test_an_appearance_only_sequence_keeps_its_low_feature_frames():
+    """Nordland's 64x32 frames hold ~23 keypoints, a third of them under a verification's minimum:
+    whole-image descriptors recognise them, so they stay places (the blank-paint rule is for maps of
+    keypoints)."""
+    quick = dataclasses.replace(BuildConfig(), calibration=CalibrationConfig(enabled=False))  # not what is tested
+    m = build_map(dataset("nordland-64x32") / "summer", quick)
+    low = [n for n in m.nodes.values() if len(n.features) < m.config.match.min_inliers]
+    assert len(m.nodes) == 1200 and len(low) > 100
 
 
 def test_single_image(tmp_path):

@@ -15,8 +15,8 @@ still matched well becomes the next keyframe (so
 consecutive keyframes keep plenty of common, verified features — servoing between them stays
 feasible, far above the 3-point minimum of docs/theory.md section 3) and the frame is matched again
 against it; if even that fails, the frame itself starts a node. A frame with fewer keypoints than
-a verification needs (``match.min_inliers``: a turn facing blank paint) next to a keyframe of at least
-``localize.MIN_FEATURES_FOR_BOW`` never becomes a keyframe: no
+a verification needs (``match.min_inliers``: a turn facing blank paint) in a sequence whose keyframes
+so far hold a median of at least ``localize.MIN_FEATURES_FOR_BOW`` never becomes a keyframe: no
 image could certify it as a goal, so it is represented by the last keyframe that had features (the
 same spot, when the teach run turned in place). The decisions are sequential, but
 with several workers the verifications of the next frames against the current keyframe are run
@@ -267,11 +267,14 @@ def _select_keyframes(frames: Iterator[PreparedFrame], tmap: TopoMap, config: Bu
     source = iter(frames)
     exhausted = False
 
+    keyframe_features: list[int] = []  # this sequence's keyframes so far: is it a map of keypoints?
+
     def start_keyframe(c: _Candidate, node: int) -> None:
         nonlocal keyframe, keyframe_node, kept
         if keyframe is not None:
             spec.kept_run(kept)
         keyframe, keyframe_node, kept = c, node, 0
+        keyframe_features.append(len(c.features))
         spec.reset(c.features)
 
     while True:
@@ -293,10 +296,10 @@ def _select_keyframes(frames: Iterator[PreparedFrame], tmap: TopoMap, config: Bu
         if keyframe is None:
             start_keyframe(cand, new_node(cand, None, None))
             last_good = None
-        elif len(frame.features) < config.match.min_inliers and len(keyframe.features) >= MIN_FEATURES_FOR_BOW:
-            # too few keypoints to ever verify (a turn facing blank paint) where the views around have
-            # plenty: the frame joins the last view that had features instead of becoming a keyframe no
-            # image could certify (an appearance-only map, e.g. Nordland's ~23 a frame, keeps every frame)
+        elif len(frame.features) < config.match.min_inliers and np.median(keyframe_features) >= MIN_FEATURES_FOR_BOW:
+            # too few keypoints to ever verify (a turn facing blank paint) in a map of keypoints: the
+            # frame joins the last view that had features instead of becoming a keyframe no image could
+            # certify (an appearance-only map, e.g. Nordland's ~23 a frame, keeps every frame)
             if last_good is not None:
                 start_keyframe(last_good, new_node(last_good, keyframe_node, last_good.link))
                 last_good = None
