@@ -507,13 +507,13 @@ def test_an_appended_experience_is_linked_and_answers_as_one_place(route, tmp_pa
 
 
 def test_each_experience_is_centred_on_its_own_median_on_one_scale():
-    from topomap.localize import MIN_EXPERIENCE_NODES, _robust_z, _robust_z_by
+    from topomap.localize import MIN_EXPERIENCE_NODES, _experience_groups, _robust_z, _robust_z_by
 
     rng = np.random.default_rng(0)
     a = rng.normal(0.0, 1.0, 40)
     x = np.concatenate([a, a + 5.0, [9.0] * (MIN_EXPERIENCE_NODES - 1)])  # the second shifted, a third too small
     labels = np.repeat([0, 1, 2], [40, 40, MIN_EXPERIENCE_NODES - 1])
-    z = _robust_z_by(x, labels)
+    z = _robust_z_by(x, _experience_groups(labels))
     assert np.allclose(z[:40], z[40:80])  # an experience-wide offset (its conditions) is gone
     whole = _robust_z(x)
     assert np.allclose(np.ptp(z[:40]), np.ptp(whole[:40]))  # the spread is the whole map's scale
@@ -543,7 +543,7 @@ def test_an_appended_experience_of_other_places_does_not_attract_its_conditions(
         loc = Localizer(m)
         assert loc._experience_labels is not None
         if not per_experience:
-            loc._experience_labels = None  # one median for the whole map, as before
+            loc._experience_labels = loc._experience_rows = None  # one median for the whole map, as before
         res = [loc.localize(f.image) for f in q[56:]]
         right = [bool(reach[r.node] & truth.matches[f.name]) for f, r in zip(q[56:], res)]
         assert not any(r.localized and not ok for r, ok in zip(res, right))

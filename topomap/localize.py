@@ -194,19 +194,25 @@ def _robust_scale(x: np.ndarray) -> float:
     return max(1.4826 * float(np.median(np.abs(x - med))), 0.25 * float(np.std(x)), 1e-6)
 
 
-def _robust_z_by(x: np.ndarray, labels: np.ndarray | None) -> np.ndarray:
-    """:func:`_robust_z` with each group of ``labels`` (experiences) of at least
-    :data:`MIN_EXPERIENCE_NODES` rows centred on its own median, on the whole of ``x``'s scale: an
-    experience's offset is removed (its conditions), its spread kept (a tight group scaled on its own
-    would turn small differences into large z)."""
-    z = _robust_z(x)
+def _experience_groups(labels: np.ndarray | None) -> list[np.ndarray] | None:
+    """Rows of each label (experience) of at least :data:`MIN_EXPERIENCE_NODES` rows, for :func:`_robust_z_by`."""
     if labels is None:
-        return z
+        return None
+    groups = (np.flatnonzero(labels == g) for g in np.unique(labels))
+    return [rows for rows in groups if len(rows) >= MIN_EXPERIENCE_NODES]
+
+
+def _robust_z_by(x: np.ndarray, groups: list[np.ndarray] | None) -> np.ndarray:
+    """:func:`_robust_z` with each of ``groups`` (rows of one experience, :func:`_experience_groups`)
+    centred on its own median, on the whole of ``x``'s scale: an experience's offset is removed (its
+    conditions), its spread kept (a tight group scaled on its own would turn small differences into
+    large z)."""
+    if not groups:
+        return _robust_z(x)
     scale = _robust_scale(x)
-    for g in np.unique(labels):
-        rows = np.flatnonzero(labels == g)
-        if len(rows) >= MIN_EXPERIENCE_NODES:
-            z[rows] = (x[rows] - float(np.median(x[rows]))) / scale
+    z = (x - float(np.median(x))) / scale
+    for rows in groups:
+        z[rows] = (x[rows] - float(np.median(x[rows]))) / scale
     return z
 
 
@@ -261,6 +267,7 @@ class Localizer:
         seqs = np.array([tmap.nodes[int(n)].sequence for n in self.node_ids])
         counts = np.unique(seqs, return_counts=True)[1]
         self._experience_labels = seqs if int((counts >= MIN_EXPERIENCE_NODES).sum()) >= 2 else None
+        self._experience_rows = _experience_groups(self._experience_labels)  # once, not per query
         # guided matching: groups = vocabulary-tree nodes at the deepest level with <= match_groups nodes
         self._vocabulary = tmap.index.vocabulary if tmap.index is not None else None
         self.guided = self.config.guided_matching and self._vocabulary is not None
@@ -317,7 +324,7 @@ class Localizer:
         score = np.zeros(len(self.node_ids))
         if self.use_bow:
             bow = self.map.index.scores(q.features, self._query_words(q), self.config.bow_max_postings)
-            score += _robust_z_by(bow[self._bow_rows].astype(np.float64), self._experience_labels)
+            score += _robust_z_by(bow[self._bow_rows].astype(np.float64), self._experience_rows)
         # fused on a big map: whole-image descriptors only for the bag of words' best nodes (a
         # thumbnail distance to all of 100k nodes costs ~35 ms); the others get the lowest score of those
         rows = None
@@ -329,7 +336,7 @@ class Localizer:
                 g = hog_descriptor(make_thumbnail(q.image, self.map.config.thumbnail_px), self.global_descriptors.size)
             # no hub correction here: standardising by each node's own similarities costs the
             # corridor's sequence mode (see docs/localization.md)
-            z = _robust_z_by(self.global_descriptors.similarity(g, rows).astype(np.float64), self._labels_of(rows))
+            z = _robust_z_by(self.global_descriptors.similarity(g, rows).astype(np.float64), self._groups_of(rows))
             score += z if rows is None else _spread(z, rows, len(score))
         # hog: on a degraded frame the sequence filter's scores blend the thumbnail in (standardised per
         # node it carries sequences where HOG dies; a single frame keeps HOG: unstandardised, the
@@ -346,19 +353,19 @@ class Localizer:
             if self._desc_stats is None:
                 self._desc_stats = _distance_statistics(self._descriptors)
             mu, sd = self._desc_stats
-            z = _robust_z_by(-((d - mu) / sd if rows is None else (d - mu[rows]) / sd[rows]), self._labels_of(rows))
+            z = _robust_z_by(-((d - mu) / sd if rows is None else (d - mu[rows]) / sd[rows]), self._groups_of(rows))
             hub = z if rows is None else _spread(z, rows, len(score))
         if not self.use_thumbnail:  # hog, the thumbnail weighted in by the frame's degradation
             return score, (1.0 - w) * score + w * hub
-        z = _robust_z_by(-d, self._labels_of(rows))
+        z = _robust_z_by(-d, self._groups_of(rows))
         plain = score + (z if rows is None else _spread(z, rows, len(score)))
         return plain, (None if hub is None else score + hub)
 
-    def _labels_of(self, rows: np.ndarray | None) -> np.ndarray | None:
-        """Experience labels of ``rows`` (all rows when ``None``) for :func:`_robust_z_by`."""
+    def _groups_of(self, rows: np.ndarray | None) -> list[np.ndarray] | None:
+        """Experience groups among ``rows`` (all rows when ``None``) for :func:`_robust_z_by`."""
         if self._experience_labels is None or rows is None:
-            return self._experience_labels
-        return self._experience_labels[rows]
+            return self._experience_rows
+        return _experience_groups(self._experience_labels[rows])
 
     def degradation(self, q: Query) -> float:
         """How much worse the frame is than the map's keyframes, in [0, 1): ``1 - 1 / (1 + low_snr +

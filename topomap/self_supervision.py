@@ -334,7 +334,7 @@ def calibrate_map(tmap: TopoMap, *, queries: int = 60, seed: int = 0, config: Lo
     """
     cfg = dataclasses.replace(config or LocalizeConfig(), use_calibration=False)
     rng = np.random.default_rng(seed)
-    with_images = [n for n in sorted(tmap.nodes) if tmap.nodes[n].image is not None or tmap.nodes[n].image_data is not None]
+    with_images = [n for n in sorted(tmap.nodes) if keyframe_image_stored(tmap, n)]
     if len(with_images) < 10:
         raise CalibrationError(f"{NOT_CALIBRATED}: the map needs at least 10 keyframe images to calibrate "
                            f"(it has {len(with_images)}; maps built with --no-images cannot be calibrated)")
