@@ -108,6 +108,46 @@ def test_loop_edges_join_views_of_the_same_place(walk):
     assert nx.shortest_path_length(m.graph, ids[0], ids[-1]) <= 2
 
 
+#: RTAB-Map-like loop closures: one per visit, and within a sequence only after the camera left
+SPARSE_LOOPS = dataclasses.replace(FAST, loop_edges_per_visit=1, loop_revisit_ratio=0.5)
+
+
+def test_a_walk_that_never_comes_back_closes_no_loop(tmp_path):
+    """Sliding one way along a wall, keyframes 3-7 apart still share the view (like a corridor's far
+    end); joining them would be a shortcut, not a loop: the camera never left, every keyframe between
+    shows the place. Before the revisit test this walk had 114 loop edges."""
+    write_sequence(tmp_path, sequence(n=44, step_px=40))
+    m = build_map(tmp_path, SPARSE_LOOPS)
+    assert len(m.nodes) > 20
+    assert [e for e in m.edges.values() if e.kind is EdgeKind.LOOP] == []
+    dense = build_map(tmp_path, FAST)  # the default keeps every verified candidate
+    assert sum(e.kind is EdgeKind.LOOP for e in dense.edges.values()) > 20
+
+
+def _loop_degrees(m) -> dict[int, int]:
+    degree: dict[int, int] = {}
+    for e in m.edges.values():
+        if e.kind is EdgeKind.LOOP:
+            degree[e.a] = degree.get(e.a, 0) + 1
+            degree[e.b] = degree.get(e.b, 0) + 1
+    return degree
+
+
+def test_one_loop_edge_per_place_seen_again(walk):
+    """With sparse loops the way back meets each place of the way out once: of a new node's verified
+    candidates, one per visit (a run along the other pass's chain) becomes an edge — a ladder
+    between the passes, not every keyframe of one pass joined to every keyframe of the other."""
+    folder, _, dense = walk
+    m = build_map(folder, SPARSE_LOOPS)
+    out_pass = [n for n in sorted(m.nodes) if n < len(m.nodes) // 2]
+    degree, dense_degree = _loop_degrees(m), _loop_degrees(dense)
+    assert max(dense_degree.get(n, 0) for n in out_pass) >= 5  # the default: every verified candidate
+    assert max(degree.get(n, 0) for n in out_pass) <= 3
+    assert sum(1 for n in out_pass if degree.get(n, 0)) >= len(out_pass) - 3  # ... and still a ladder
+    ids = sorted(m.nodes)
+    assert nx.shortest_path_length(m.graph, ids[0], ids[-1]) <= 2  # the loop still closes
+
+
 def test_determinism(walk):
     folder, _, m = walk
     again = build_map(folder, FAST)

@@ -67,6 +67,8 @@ def test_from_dict_defaults_and_rejects():
         (lambda: BuildConfig(loop_min_inliers=10), "loop_min_inliers"),
         (lambda: BuildConfig(keyframe_min_ratio=1.0), "keyframe_min_ratio"),
         (lambda: BuildConfig(loop_shortlist_k=0), "loop_shortlist_k"),
+        (lambda: BuildConfig(loop_edges_per_visit=-1), "loop_edges_per_visit"),
+        (lambda: BuildConfig(loop_revisit_ratio=0.0), "loop_revisit_ratio"),
         (lambda: BuildConfig(vocabulary_words=4), "vocabulary_words"),
         (lambda: LocalizeConfig(bow_max_postings=0), "bow_max_postings"),
         (lambda: LocalizeConfig(bow_max_postings=1.5), "bow_max_postings"),

@@ -604,11 +604,7 @@ def _loop_candidates(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig) -> Ite
     by_sequence: dict[int, set[int]] = {}
     for n in tmap.nodes.values():
         by_sequence.setdefault(n.sequence, set()).add(n.id)
-    seq_adj: dict[int, list[int]] = {}
-    for e in tmap.edges.values():
-        if e.kind is EdgeKind.SEQUENTIAL:
-            seq_adj.setdefault(e.a, []).append(e.b)
-            seq_adj.setdefault(e.b, []).append(e.a)
+    seq_adj = _sequential_adjacency(tmap)
     existing = set(tmap.edges)
     for nid in new_ids:
         node = tmap.nodes[nid]
@@ -618,7 +614,8 @@ def _loop_candidates(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig) -> Ite
             words = index.words_of_features(nid)  # stored at indexing: no need to quantise again
             scores = index.scores(node.features, None if words is None else words.astype(np.int64))
             own = by_sequence[node.sequence]
-            candidates = index.top_k(scores, cfg.loop_shortlist_k, near | (all_ids - own))
+            candidates = [(cid, score) for cid, score in index.top_k(scores, cfg.loop_shortlist_k, near | (all_ids - own))
+                          if _camera_left(index, scores, nid, cid, own, cfg.loop_revisit_ratio)]
             if len(own) < len(all_ids):
                 candidates += index.top_k(scores, cfg.loop_shortlist_k, own)
             for cid, score in candidates:
@@ -628,6 +625,17 @@ def _loop_candidates(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig) -> Ite
                 tested.add(pair)
                 pairs.append((nid, cid))
         yield nid, pairs
+
+
+def _camera_left(index: BowIndex, scores: np.ndarray, nid: int, cid: int, own: set[int], ratio: float | None) -> bool:
+    """Whether the camera left node ``nid``'s place between it and ``cid`` (same sequence; ids follow
+    the chain): some keyframe between scores under ``ratio`` times ``cid``'s score against ``nid``."""
+    if ratio is None:
+        return True
+    between = [n for n in range(min(nid, cid) + 1, max(nid, cid)) if n in own]
+    if not between:
+        return True
+    return bool(scores[index.row_indices(between)].min() < ratio * scores[index.row_indices([cid])[0]])
 
 
 def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progress, *,
@@ -662,18 +670,62 @@ def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progres
             order.popleft()
             node_done()
 
+    seq_adj = _sequential_adjacency(tmap)
+    accepted: list[tuple[int, int, Verification]] = []  # the current node's verified candidates
     for v in executor.map(_verify_task, tasks(), window=4 * executor.workers):
         nodes_without_pairs()
-        _, a, b, last = order.popleft()
+        nid, a, b, last = order.popleft()
         if v.inliers >= cfg.loop_min_inliers and v.inlier_ratio >= cfg.loop_min_inlier_ratio:
-            tmap.add_edge(Edge(a, b, EdgeKind.LOOP, v.inliers, v.similarity, v.flow_px))
-            if verified is not None:
-                verified[(a, b)] = _for_motion(v)
-            added += 1
+            accepted.append((a, b, v))
         if last:
+            for a, b, v in _best_per_visit(nid, accepted, seq_adj, cfg):
+                tmap.add_edge(Edge(a, b, EdgeKind.LOOP, v.inliers, v.similarity, v.flow_px))
+                if verified is not None:
+                    verified[(a, b)] = _for_motion(v)
+                added += 1
+            accepted = []
             node_done()
     nodes_without_pairs()
     return added
+
+
+def _sequential_adjacency(tmap: TopoMap) -> dict[int, list[int]]:
+    adj: dict[int, list[int]] = {}
+    for e in tmap.edges.values():
+        if e.kind is EdgeKind.SEQUENTIAL:
+            adj.setdefault(e.a, []).append(e.b)
+            adj.setdefault(e.b, []).append(e.a)
+    return adj
+
+
+def _best_per_visit(nid: int, accepted: list[tuple[int, int, Verification]], seq_adj: dict[int, list[int]],
+                    cfg: BuildConfig) -> list[tuple[int, int, Verification]]:
+    """The loop edges node ``nid`` keeps of its verified candidates ``(a, b, verification)``: the
+    ``loop_edges_per_visit`` best (most inliers, then lowest id) of each visit, a visit being the
+    candidates joined by chains of fewer than ``loop_min_separation`` sequential steps."""
+    if cfg.loop_edges_per_visit == 0 or len(accepted) <= 1:
+        return accepted
+    other = {(b if a == nid else a): i for i, (a, b, _) in enumerate(accepted)}
+    visits: list[list[int]] = []
+    seen: set[int] = set()
+    for c in sorted(other):
+        if c in seen:
+            continue
+        visit, frontier = [], [c]  # flood through the candidates within reach of each other
+        seen.add(c)
+        while frontier:
+            x = frontier.pop()
+            visit.append(x)
+            reach = _within_steps(seq_adj, x, cfg.loop_min_separation)
+            for y in sorted(reach & other.keys() - seen):
+                seen.add(y)
+                frontier.append(y)
+        visits.append(visit)
+    keep: list[int] = []
+    for visit in visits:
+        ranked = sorted(visit, key=lambda c: (-accepted[other[c]][2].inliers, c))
+        keep.extend(other[c] for c in ranked[: cfg.loop_edges_per_visit])
+    return [accepted[i] for i in sorted(keep)]
 
 
 def _within_steps(adj: dict[int, list[int]], nid: int, steps: int) -> set[int]:

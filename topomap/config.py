@@ -155,6 +155,16 @@ class BuildConfig:
     # Nodes of one sequence fewer than this many sequential steps apart are not loop candidates:
     # they are already joined by a short path (a shortcut there closes no loop).
     loop_min_separation: int = 3
+    # Sparser loop closures (RTAB-Map-like; both off by default: the denser graph's neighbourhoods make
+    # the localizer more confident and the navigator starts more often, docs/build.md "Loop closures"):
+    # keep, of a new node's verified candidates, the best (most inliers) of each *visit* — candidates
+    # of another stretch of the chains fewer than loop_min_separation steps apart — 0 keeps all ...
+    loop_edges_per_visit: int = 0
+    # ... and take a candidate of the node's own sequence only where the camera left the place and came
+    # back: some keyframe of the chain between them scores under this fraction of the candidate's
+    # appearance score against the node (down a corridor every keyframe still shows its far end, and
+    # a "loop" there joins places metres apart). None: no such test.
+    loop_revisit_ratio: float | None = None
     vocabulary_words: int = 65536  # upper bound on visual words; the map's descriptors decide (8 per word)
     thumbnail_px: int = 128  # longest side of the stored thumbnails [px]
     store_images: bool = True  # store each keyframe image in the map (False: maps that only localize)
@@ -188,6 +198,10 @@ class BuildConfig:
             raise ConfigError(f"keyframe_max_flow={self.keyframe_max_flow} must lie in (0, 1]")
         if self.loop_shortlist_k < 1:
             raise ConfigError("loop_shortlist_k must be at least 1")
+        if self.loop_revisit_ratio is not None and not self.loop_revisit_ratio > 0:
+            raise ConfigError(f"loop_revisit_ratio={self.loop_revisit_ratio} must be > 0 (or None: no revisit test)")
+        if self.loop_edges_per_visit < 0:
+            raise ConfigError("loop_edges_per_visit must be >= 0 (0: keep every verified loop candidate)")
         if self.vocabulary_words < 16:
             raise ConfigError("vocabulary_words must be at least 16")
         if self.image_format not in IMAGE_FORMATS:

@@ -344,6 +344,10 @@ class BowIndex:
             fw = np.concatenate([np.asarray(w) for w in feature_words]).astype(dtype) if feature_words else np.zeros(0, dtype)
         return cls(vocabulary, ids, indptr, rows, counts, fw, fp)
 
+    def row_indices(self, node_ids) -> np.ndarray:
+        """Rows of the score arrays (:meth:`scores`) that hold the given node ids (all in the index)."""
+        return np.array([self._row_of[int(n)] for n in node_ids], np.intp)
+
     def words_of_features(self, node_id: int) -> np.ndarray | None:
         """The word of each feature of ``node_id`` (feature order), or ``None`` if not stored."""
         if self.feature_words is None:
