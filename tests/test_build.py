@@ -34,6 +34,16 @@ def snapshot(m: TopoMap) -> tuple:
     return nodes, edges, frames
 
 
+def nearest_keyframes(m: TopoMap) -> dict[int, int]:
+    """Frame id -> the node of its sequence's keyframe nearest to it by frame index (ties: the
+    earlier keyframe), for every frame with status ok and a node."""
+    keys: dict[int, list[tuple[int, int]]] = {}
+    for n in m.nodes.values():
+        keys.setdefault(n.sequence, []).append((m.frames[n.frame_id].index, n.id))
+    return {f.id: min(keys[f.sequence], key=lambda k: (abs(k[0] - f.index), k[0]))[1]
+            for f in m.frames if f.status == "ok" and f.node is not None}
+
+
 def consecutive_nodes_joined(m: TopoMap, sequence: int = 0) -> bool:
     ids = sorted(n.id for n in m.nodes.values() if n.sequence == sequence)
     return all(m.edge(a, b) is not None and m.edge(a, b).kind is EdgeKind.SEQUENTIAL for a, b in zip(ids, ids[1:]))
@@ -54,10 +64,24 @@ def test_keyframes_and_frame_assignment(walk):
     assert len(m.frames) == len(xs) and all(f.status == "ok" and f.node is not None for f in m.frames)
     for n in m.nodes.values():
         assert m.frames[n.frame_id].node == n.id and m.frames[n.frame_id].source == n.source
-    # nodes follow the input order; every frame is represented by a node of itself or an earlier keyframe
+    # nodes follow the input order, and so do the frames they represent
     assert [m.frames[n.frame_id].index for n in sorted(m.nodes.values(), key=lambda n: n.id)] == sorted(
         m.frames[n.frame_id].index for n in m.nodes.values())
     assert [f.node for f in m.frames] == sorted(f.node for f in m.frames)
+
+
+def test_a_frame_is_represented_by_the_nearest_keyframe(tmp_path):
+    """A new keyframe is the last frame that still matched the previous one: the frames just before
+    it are nearer to it than to the keyframe they were tracked against, and it represents them."""
+    write_sequence(tmp_path, sequence(16, step_px=15))
+    m = build_map(tmp_path, FAST)
+    assert [m.frames[n.frame_id].index for n in sorted(m.nodes.values(), key=lambda n: n.id)] == [0, 4, 8, 12]
+    # 1, 2 (a tie: the keyframe tracked against) with keyframe 0; 3 with keyframe 4, one frame away
+    assert [f.node for f in m.frames] == [0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3, 3]
+    assert {f.id: f.node for f in m.frames} == nearest_keyframes(m)
+    for frame in open_sequence(tmp_path):  # the later keyframe verifies the frames it takes over
+        v = verify(m.nodes[m.frames[frame.index].node].features, extract(frame.image, m.config.features), m.config.match)
+        assert v.inliers >= m.config.keyframe_min_inliers, (frame.name, v.inliers)
 
 
 def test_flow_limit_starts_keyframes(walk):
@@ -257,9 +281,12 @@ def test_featureless_frames_join_the_last_keyframe_with_features(tmp_path):
     m = build_map(tmp_path, FAST)
     assert all(len(n.features) >= FAST.match.min_inliers for n in m.nodes.values())
     assert all(f.node is not None for f in m.frames)
-    # the blank frames belong to the node of the frame before them (its keyframe, or it became one)
-    before = m.frames[3].node
-    assert [f.node for f in m.frames[4:7]] == [before] * 3
+    # the blank frames join the node of the frame before them (its keyframe, or it became one); when
+    # the next keyframe is made, the one past the midpoint (frame 6) moves to it, as any frame does
+    before, after = m.frames[3].node, m.frames[7].node
+    assert m.nodes[before].frame_id == 3 and m.nodes[after].frame_id == 7
+    assert [f.node for f in m.frames[4:7]] == [before, before, after]
+    assert {f.id: f.node for f in m.frames} == nearest_keyframes(m)
     assert consecutive_nodes_joined(m)
 
 
@@ -386,3 +413,6 @@ def test_corridor_ref(corridor):
     assert consecutive_nodes_joined(m)
     assert len(m.components()) == 1
     assert m.working_size == (480, 360) and m.camera.source == "default"
+    # keyframe 15 (node 4) represents ref 14, one frame from it, not keyframe 12 two frames back
+    assert {f.id: f.node for f in m.frames} == nearest_keyframes(m)
+    assert m.node_of_frame("0000014.jpg") == m.node_of_frame("0000015.jpg") != m.node_of_frame("0000013.jpg")

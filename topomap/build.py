@@ -253,10 +253,22 @@ class _Speculation:
         self.run_length = 0.7 * self.run_length + 0.3 * frames_kept
 
 
+def _move_past_midpoint(tmap: TopoMap, prev_record: int, prev_node: int, next_record: int, next_node: int) -> None:
+    """The frames of ``prev_node`` between two keyframes that are nearer (by frame index) to the new
+    one are represented by it: it is the last frame that still matched the previous keyframe, so the
+    frames just before it are nearer to it. Ties stay with the previous keyframe (tracked against)."""
+    a, b = tmap.frames[prev_record].index, tmap.frames[next_record].index
+    for fid in range(prev_record + 1, next_record):
+        f = tmap.frames[fid]
+        if f.node == prev_node and f.index - a > b - f.index:
+            tmap.frames[fid] = replace(f, node=next_node)
+
+
 def _select_keyframes(frames: Iterator[PreparedFrame], tmap: TopoMap, config: BuildConfig, sequence_id: int,
                       executor: Executor, new_node: Callable, on_frame: Callable[[PreparedFrame], None]) -> None:
     """The keyframes stage: assign every prepared frame (in order) to a node, creating nodes and
-    sequential edges through ``new_node(candidate, previous node, link)``."""
+    sequential edges through ``new_node(candidate, previous node, link)``; a frame is first given the
+    keyframe it is tracked against and moves to the next one if that is nearer (:func:`_move_past_midpoint`)."""
     keyframe: _Candidate | None = None
     keyframe_node = -1
     last_good: _Candidate | None = None
@@ -273,6 +285,7 @@ def _select_keyframes(frames: Iterator[PreparedFrame], tmap: TopoMap, config: Bu
         nonlocal keyframe, keyframe_node, kept
         if keyframe is not None:
             spec.kept_run(kept)
+            _move_past_midpoint(tmap, keyframe.record, keyframe_node, c.record, node)
         keyframe, keyframe_node, kept = c, node, 0
         keyframe_features.append(len(c.features))
         spec.reset(c.features)

@@ -107,7 +107,11 @@ class Edge:
 @dataclass(frozen=True)
 class FrameRecord:
     """One input image of a build. ``node`` is the node representing it, ``None`` if it was
-    skipped (``status`` then says why: unreadable, too few features...)."""
+    skipped (``status`` then says why: unreadable, too few features...).
+
+    That node is the keyframe of its sequence nearest by frame index (ties: the earlier one, tracked
+    against), since a new keyframe is the last frame that still matched the one before it; map files
+    built before 2026-12-03 keep their stored assignment (the keyframe before)."""
 
     id: int
     sequence: int
