@@ -608,16 +608,17 @@ def index_global_descriptors(tmap: TopoMap) -> GlobalDescriptors:
 
 
 # ============================================================================= stage: loops
-def _loop_candidates(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig) -> Iterator[tuple[int, list[tuple[int, int]]]]:
+def _loop_candidates(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, seq_adj: dict[int, list[int]]
+                     ) -> Iterator[tuple[int, list[tuple[int, int]]]]:
     """Per new node (in id order): the pairs its appearance shortlist proposes for verification,
-    each pair once over the whole stage, none already joined by an edge."""
+    each pair once over the whole stage, none already joined by an edge (``seq_adj``: the map's
+    sequential adjacency, :func:`_sequential_adjacency`)."""
     index: BowIndex = tmap.index
     tested: set[tuple[int, int]] = set()
     all_ids = set(tmap.nodes)
     by_sequence: dict[int, set[int]] = {}
     for n in tmap.nodes.values():
         by_sequence.setdefault(n.sequence, set()).add(n.id)
-    seq_adj = _sequential_adjacency(tmap)
     existing = set(tmap.edges)
     for nid in new_ids:
         node = tmap.nodes[nid]
@@ -662,9 +663,10 @@ def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progres
     executor = executor or InlineExecutor()
     # one entry per pair in submission order, and (nid, None, None, True) for nodes without pairs
     order: deque[tuple[int, int | None, int | None, bool]] = deque()
+    seq_adj = _sequential_adjacency(tmap)  # loop edges do not change it: one for the whole stage
 
     def tasks():
-        for nid, pairs in _loop_candidates(tmap, new_ids, cfg):
+        for nid, pairs in _loop_candidates(tmap, new_ids, cfg, seq_adj):
             if not pairs:
                 order.append((nid, None, None, True))
             for j, (a, b) in enumerate(pairs):
@@ -683,7 +685,6 @@ def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progres
             order.popleft()
             node_done()
 
-    seq_adj = _sequential_adjacency(tmap)
     accepted: list[tuple[int, int, Verification]] = []  # the current node's verified candidates
     for v in executor.map(_verify_task, tasks(), window=4 * executor.workers):
         nodes_without_pairs()
