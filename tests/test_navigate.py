@@ -389,6 +389,34 @@ def test_arrival_needs_a_measured_floor_when_the_height_is_known():
     assert last([0.3] * n)[1] == "far"
 
 
+def test_the_floor_is_required_only_where_the_goal_keyframe_shows_one():
+    """Held-out world 115 ep 0: the goal's keyframe is a wall panel a metre away, filling the view (1
+    of its 781 features below the floor line); the robot held 0.02-0.06 m from it for 200 s, the
+    image agreeing, while every arrival was refused for a floor no image there can show (timeout).
+    A keyframe with its floor in view still needs it measured; one without is judged by image and
+    servo, as when the camera height is unknown."""
+    from topomap.features import Features
+    from topomap.navigate import FLOOR_MIN_KEYFRAME_POINTS
+
+    nav, _ = _blind_navigator()
+    cam = nav.map.camera
+    size = (cam.width, cam.height)
+
+    def keyframe(ys):
+        kp = np.array([[cam.cx, y] for y in ys], np.float32)
+        nav.map.nodes[2].features = Features(kp, np.zeros((len(kp), 32), np.uint8), "orb", size)
+
+    line = cam.cy + nav.servo.config.geometry.floor_min_y * cam.fy  # the floor line's row [px]
+    keyframe([line - 5.0] * 200 + [line + 5.0] * (FLOOR_MIN_KEYFRAME_POINTS - 1))  # a close wall
+    assert not nav.shows_floor(2)
+    nav._camera_height_m = 0.8
+    assert not nav._new_settle(2).floor_required
+    keyframe([line - 5.0] * 200 + [line + 5.0] * FLOOR_MIN_KEYFRAME_POINTS)  # the floor in view
+    assert nav.shows_floor(2) and nav._new_settle(2).floor_required
+    nav._camera_height_m = None
+    assert not nav._new_settle(2).floor_required  # height unknown: the floor is never required
+
+
 def test_goal_image_check_undoes_the_estimated_heading():
     """Held-out world 118 ep 2 under ``lighting``: 0.02 m from the goal, turned 3.6 deg, the matches
     moved 6 % of the width (one degree of yaw is ~1.5 %, the bound 2 %) and the thumbnail shifted;

@@ -25,7 +25,9 @@ matches with the goal keyframe have moved less than ``arrive_image_error`` of th
 a single wall the planar relative pose is ambiguous, so the pose estimate alone cannot certify arrival.
 With the camera height known, the floor must agree too: the distance the lowest matched points measure
 (median over the settle window) below ``arrive_floor_max_m``, measured in at least
-``arrive_floor_min_fraction`` of the window's frames — an unmeasured floor certifies nothing. The image
+``arrive_floor_min_fraction`` of the window's frames — an unmeasured floor certifies nothing — wherever
+the goal's keyframe shows a floor (a close wall filling the view hides it; there no image can measure
+it, and image and servo decide, as without the height). The image
 check looks at the image turned back by the servo's heading estimate: it judges the position. On long views the goal's scale from its
 neighbours can be several times too small — the servo then believes it has arrived a quarter metre
 out, where the image barely differs — so a refused arrival hands the servo the scale the floor measured.
@@ -106,6 +108,9 @@ SETTLE_MIN_VALID_FRACTION = 0.8
 DEROTATE_MAX_DEG = 5.0
 #: While backing off, look for the node that verified well every this many periods.
 BACKOFF_CHECK_EVERY = 3
+#: The floor can certify an arrival only where the goal's keyframe shows it: at least this many of its
+#: features below the floor line (a wall closer than the first floor the camera sees hides it).
+FLOOR_MIN_KEYFRAME_POINTS = 10
 
 
 class RobotLike(Protocol):
@@ -192,7 +197,8 @@ class _Settle:
     unicycle that stalls further out (within ``settle_patience_max_m``) settles there if the image
     agrees within the looser ``settle_patience_image_error``. ``false_arrival`` counts the periods
     in a row the servo believed it had arrived while the image disagreed (a look-alike place).
-    ``floor_required`` (the camera height is known): an arrival needs the floor measured and agreeing."""
+    ``floor_required`` (the camera height is known and the goal's keyframe shows the floor): an arrival
+    needs the floor measured and agreeing."""
 
     def __init__(self, config: NavigateConfig, floor_required: bool = False):
         self.config = config
@@ -514,14 +520,23 @@ class Navigator:
         if measured is not None:
             self.servo.rescale(float(np.clip(measured, nominal / SCALE_CLIP_FACTOR, SCALE_CLIP_FACTOR * nominal)))
         self._count("arrivals the floor refused")
-        leg.settle = self._new_settle()
+        leg.settle = self._new_settle(leg.nodes[-1])
 
-    def _new_settle(self) -> _Settle:
-        return _Settle(self.config, floor_required=self._camera_height_m is not None)
+    def _new_settle(self, goal: int) -> _Settle:
+        return _Settle(self.config, floor_required=self._camera_height_m is not None and self.shows_floor(goal))
+
+    def shows_floor(self, node: int) -> bool:
+        """Whether ``node``'s keyframe shows the floor the arrival check measures. A view filled by a
+        close wall does not (its features all lie above the floor line): no image taken there can
+        measure the floor, so requiring it would refuse every arrival — image and servo decide."""
+        kp = self.map.nodes[node].features.keypoints
+        cam = self.map.camera
+        below = (kp[:, 1] - cam.cy) / cam.fy > self.servo.config.geometry.floor_min_y
+        return int(np.count_nonzero(below)) >= FLOOR_MIN_KEYFRAME_POINTS
 
     def _start_leg(self, nodes: list[int]) -> _Leg:
         """The one place a route's loop state starts (first plan and every re-plan)."""
-        leg = _Leg(list(nodes), self._new_settle(), self._time)
+        leg = _Leg(list(nodes), self._new_settle(nodes[-1]), self._time)
         self._target(leg.nodes, leg.i)
         return leg
 
@@ -564,7 +579,9 @@ class Navigator:
                     floor = leg.settle.floor_distance()
                     out.message = f"arrived at node {goal}" + (
                         "" if arrived == "precise" else f" (settled {s.position_error_m:.2f} m off by its estimate: no further progress)") + (
-                        f" (the floor measures {floor:.2f} m)" if math.isfinite(floor) else "")
+                        f" (the floor measures {floor:.2f} m)" if math.isfinite(floor) else
+                        " (its view shows no floor to measure)" if self._camera_height_m is not None and not leg.settle.floor_required
+                        else "")
                     yield NavEvent(EventKind.ARRIVED, self._time, out.message, subgoal=goal, route=tuple(nodes))
                     return
             # -- intermediate subgoal: switch?
