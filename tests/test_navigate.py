@@ -516,6 +516,18 @@ def test_a_start_the_geometry_refuses_is_not_accepted(taught):
         assert ev.kind is EventKind.FAILED and "could not localize" in ev.message, (kwargs, ev.message)
 
 
+def test_a_full_turn_without_a_sure_start_takes_its_best_confirmed_view(taught):
+    """Held-out world 108 ep 0: the first frame answered the right node at 0.43 with a 42-inlier pose,
+    under start_verified_confidence, and after a full turn the start failed with the whole budget
+    unused. Now a full turn that finds nothing surer starts on its best answer the geometry confirmed
+    twice (here every answer is capped below start_verified_confidence); disabled, it fails as before."""
+    ev, off = _start(taught, start_verified_confidence=0.95)
+    assert ev.kind is EventKind.LOCALIZED and "the best of a full turn" in ev.message, ev.message
+    assert off < 1.0
+    ev, _ = _start(taught, start_verified_confidence=0.95, start_fallback_confidence=1.0)
+    assert ev.kind is EventKind.FAILED and "could not localize" in ev.message, ev.message
+
+
 def test_the_confirming_frame_comes_after_a_short_turn(taught):
     """A scan step turning ~60 deg would take the candidate's place out of view before its second
     look; the confirming frame comes after start_confirm_every_s instead, within one scan step."""

@@ -165,6 +165,10 @@ class BuildConfig:
     # appearance score against the node (down a corridor every keyframe still shows its far end, and
     # a "loop" there joins places metres apart). None: no such test.
     loop_revisit_ratio: float | None = None
+    # A loop closure needs this many of its inliers above the image's centre row in both images (off
+    # the floor for a level camera): floors repeat (tiles, carpet), and a match on the floor alone
+    # aliases by a tile — simulated offices held loop edges 2-18 m and up to 180 deg long that way.
+    loop_min_off_floor_inliers: int = 10
     vocabulary_words: int = 65536  # upper bound on visual words; the map's descriptors decide (8 per word)
     thumbnail_px: int = 128  # longest side of the stored thumbnails [px]
     store_images: bool = True  # store each keyframe image in the map (False: maps that only localize)
@@ -198,6 +202,9 @@ class BuildConfig:
             raise ConfigError(f"keyframe_max_flow={self.keyframe_max_flow} must lie in (0, 1]")
         if self.loop_shortlist_k < 1:
             raise ConfigError("loop_shortlist_k must be at least 1")
+        if not 0 <= self.loop_min_off_floor_inliers <= self.loop_min_inliers:
+            raise ConfigError(f"loop_min_off_floor_inliers={self.loop_min_off_floor_inliers} must lie in "
+                              f"[0, loop_min_inliers={self.loop_min_inliers}]")
         if self.loop_revisit_ratio is not None and not self.loop_revisit_ratio > 0:
             raise ConfigError(f"loop_revisit_ratio={self.loop_revisit_ratio} must be > 0 (or None: no revisit test)")
         if self.loop_edges_per_visit < 0:
@@ -671,6 +678,10 @@ class NavigateConfig:
     # not close that loop; a calibrated 0.9 on one frame missed whole turns (held-out world 108).
     start_verified_confidence: float = 0.5
     start_confirm_heading_deg: float = 5.0
+    # A full turn that found nothing at start_verified_confidence starts on the best answer of at
+    # least start_fallback_confidence that its geometry confirmed in the same way (>= 1 disables):
+    # the calibration is cautious on a traversal it never saw, a verified heading loop is not chance.
+    start_fallback_confidence: float = 0.3
     # The confirming frame comes after a shorter turn than a scan step: a full step (~20 deg with an
     # uncompensated yaw disturbance) turned the candidate's view out of the image under changed light.
     start_confirm_every_s: float = 0.2
@@ -695,6 +706,8 @@ class NavigateConfig:
             raise ConfigError("navigate give_up_budget_fraction must lie in [0, 1), recover_far_confidence in [0, 1]")
         if not 0 <= self.start_verified_confidence <= 1 or not 0 <= self.arrive_floor_min_fraction <= 1:
             raise ConfigError("navigate start_verified_confidence and arrive_floor_min_fraction must lie in [0, 1]")
+        if not self.start_fallback_confidence >= 0:
+            raise ConfigError("navigate start_fallback_confidence must be >= 0 (1 or more: never start on a weaker answer)")
         if not self.arrive_floor_max_m > 0 or not self.start_confirm_heading_deg > 0:
             raise ConfigError("navigate arrive_floor_max_m and start_confirm_heading_deg must be positive")
         if self.recover_backoff_s < 0 or self.recover_local_hops < 0:

@@ -388,6 +388,7 @@ class Navigator:
         best: Localization | None = None
         turned = 0.0
         found: tuple[Localization, str] | None = None
+        fallback: tuple[Localization, str] | None = None  # the best confirmed answer below start_verified_confidence
         pending: tuple[Localization, RelativePose, Query] | None = None  # (answer, its pose, that frame)
         while True:
             image, q = self._look(localizing=True)
@@ -398,9 +399,13 @@ class Navigator:
                 turn = self._frame_heading(q, before)  # the turn as the two images measure it
                 if (again is not None and math.isfinite(turn) and abs(wrap_angle(again.theta - pose.theta - turn))
                         < math.radians(cfg.start_confirm_heading_deg)):
-                    found = (cand, f"confidence {cand.confidence:.2f}, confirmed by its geometry in two frames "
-                                   f"({pose.inliers} and {again.inliers} inliers)")
-                    break
+                    why = (f"confidence {cand.confidence:.2f}, confirmed by its geometry in two frames "
+                           f"({pose.inliers} and {again.inliers} inliers)")
+                    if cand.confidence >= cfg.start_verified_confidence:
+                        found = (cand, why)
+                        break
+                    if fallback is None or cand.confidence > fallback[0].confidence:
+                        fallback = (cand, why + ", the best of a full turn")
                 pending = None
             loc = self.localizer.localize_query(q)
             if best is None or loc.confidence > best.confidence:
@@ -408,19 +413,37 @@ class Navigator:
             if loc.localized:
                 found = (loc, f"confidence {loc.confidence:.2f}")
                 break
-            if loc.confidence >= cfg.start_verified_confidence and (pose := self._start_pose(q, loc.node)) is not None:
+            weakest = min(cfg.start_verified_confidence, cfg.start_fallback_confidence)
+            if loc.confidence >= weakest and (pose := self._start_pose(q, loc.node)) is not None:
                 pending = (loc, pose, q)
             if turned >= 2 * math.pi and pending is None:
                 break
             # a short turn before the confirming frame keeps the candidate's place in view
             turned += self._scan_step(cfg.start_confirm_every_s if pending is not None else None)
         self._hold()
+        if found is None and fallback is not None and self._face_again(fallback[0].node):
+            found = fallback
         if found is None:
             conf = best.confidence if best else 0.0
-            raise _Failed(NavStatus.FAILED, f"could not localize in the map after a full turn (best confidence {conf:.2f})")
+            seen = f"; node {fallback[0].node} was not seen again in a second turn" if fallback is not None else ""
+            raise _Failed(NavStatus.FAILED, f"could not localize in the map after a full turn (best confidence {conf:.2f}){seen}")
         loc, why = found
         self._here = loc.node
         yield NavEvent(EventKind.LOCALIZED, self._time, f"at node {loc.node} ({why})", subgoal=loc.node, localization=loc)
+
+    def _face_again(self, node: int) -> bool:
+        """Turn on, at most one more full turn, until ``node``'s keyframe verifies again (the match's
+        ``min_inliers``): the start's best answer was seen some way back, and its first subgoal is
+        that view. Finding it again at about the heading it was first seen is one more look."""
+        turned = 0.0
+        while turned < 2 * math.pi:
+            turned += self._scan_step()
+            _, q = self._look(localizing=True)
+            if self._start_pose(q, node, min_inliers=self.map.config.match.min_inliers) is not None:
+                self._hold()
+                return True
+        self._hold()
+        return False
 
     def _pose_against(self, q: Query, other: Features, other_camera: CameraIntrinsics | None = None
                       ) -> RelativePose | None:
