@@ -689,7 +689,8 @@ def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progres
     for v in executor.map(_verify_task, tasks(), window=4 * executor.workers):
         nodes_without_pairs()
         nid, a, b, last = order.popleft()
-        if v.inliers >= cfg.loop_min_inliers and v.inlier_ratio >= cfg.loop_min_inlier_ratio:
+        if (v.inliers >= cfg.loop_min_inliers and v.inlier_ratio >= cfg.loop_min_inlier_ratio
+                and _off_floor_inliers(tmap, a, b, v) >= cfg.loop_min_off_floor_inliers):
             accepted.append((a, b, v))
         if last:
             for a, b, v in _best_per_visit(nid, accepted, seq_adj, cfg):
@@ -701,6 +702,15 @@ def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progres
             node_done()
     nodes_without_pairs()
     return added
+
+
+def _off_floor_inliers(tmap: TopoMap, a: int, b: int, v: Verification) -> int:
+    """Inliers of ``v`` (node ``a`` to node ``b``) above the image's centre row in both keyframes."""
+    m = v.inlier_matches
+    cy = tmap.camera.fitted_to(*tmap.working_size).cy
+    ya = tmap.nodes[a].features.keypoints[m.ia, 1]
+    yb = tmap.nodes[b].features.keypoints[m.ib, 1]
+    return int(np.count_nonzero((ya < cy) & (yb < cy)))
 
 
 def _sequential_adjacency(tmap: TopoMap) -> dict[int, list[int]]:
