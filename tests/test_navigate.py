@@ -389,6 +389,33 @@ def test_arrival_needs_a_measured_floor_when_the_height_is_known():
     assert last([0.3] * n)[1] == "far"
 
 
+def test_a_patient_settle_judges_the_floor_over_its_own_window():
+    """Held-out world 128 ep 0: a unicycle stalled 0.08-0.11 m from its goal for 125 s, the floor
+    read in a third of the frames (0.02-0.25 m, median 0.07) — fewer than half of the last 3 s, so
+    every patient settle was refused as unmeasured (timeout). The patient settle now reads the floor
+    over its own 20-s window, where a third of the frames is dozens of readings; a handful still
+    certifies nothing."""
+    import types
+
+    from topomap.config import NavigateConfig
+    from topomap.navigate import _Settle
+
+    cfg = NavigateConfig()
+    slow = types.SimpleNamespace(converged=False, position_error_m=0.1, heading_error_rad=0.0)
+    t = np.arange(0.0, cfg.settle_patience_s + 1.0, cfg.control_period_s)
+
+    def first(every):
+        s = _Settle(cfg, floor_required=True)
+        for k, ti in enumerate(t):
+            floor = 0.07 if every and k % every == 0 else math.nan
+            if (a := s.update(ti, slow, False, lambda: True, floor)) is not None:
+                return a
+        return None
+
+    assert first(3) == "settled"  # a third of the frames
+    assert first(len(t) // 3) == "far"  # three readings in the window: unmeasured
+
+
 def test_the_floor_is_required_only_where_the_goal_keyframe_shows_one():
     """Held-out world 115 ep 0: the goal's keyframe is a wall panel a metre away, filling the view (1
     of its 781 features below the floor line); the robot held 0.02-0.06 m from it for 200 s, the

@@ -642,9 +642,11 @@ class NavigateConfig:
     # arrival below settle_patience_max_m. The goal's scale from its neighbours can be several times
     # off on long views (their floor points mismatched), and with it the servo's metric estimate.
     # Refused, the servo takes the scale the floor measures and keeps approaching. Checked only when
-    # at least arrive_floor_min_fraction of the window's frames measured the floor.
+    # at least arrive_floor_min_fraction of the window's frames, or arrive_floor_min_readings of them,
+    # measured the floor (a median of 15 readings is as sure in a 20-s window as in a 3-s one).
     arrive_floor_max_m: float = 0.15
     arrive_floor_min_fraction: float = 0.5
+    arrive_floor_min_readings: int = 15
     # A unicycle can also stall further out (heading aligned, no progress, a lateral offset it cannot
     # remove without manoeuvres that lose the view). Aligned within settle_patience_max_m and
     # changing less than settle_patience_progress_m over settle_patience_s (medians of the window's
@@ -708,6 +710,8 @@ class NavigateConfig:
             raise ConfigError("navigate start_verified_confidence and arrive_floor_min_fraction must lie in [0, 1]")
         if not self.start_fallback_confidence >= 0:
             raise ConfigError("navigate start_fallback_confidence must be >= 0 (1 or more: never start on a weaker answer)")
+        if self.arrive_floor_min_readings < 1:
+            raise ConfigError("navigate arrive_floor_min_readings must be at least 1")
         if not self.arrive_floor_max_m > 0 or not self.start_confirm_heading_deg > 0:
             raise ConfigError("navigate arrive_floor_max_m and start_confirm_heading_deg must be positive")
         if self.recover_backoff_s < 0 or self.recover_local_hops < 0:

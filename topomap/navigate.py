@@ -224,25 +224,27 @@ class _Settle:
             return "precise" if self.floor_agrees(cfg.arrive_floor_max_m) else "far"
         if (self.stalled(cfg.settle_patience_max_m, cfg.settle_patience_s, cfg.settle_patience_progress_m)
                 and loosely_agrees()):
-            return "settled" if self.floor_agrees(cfg.settle_patience_max_m) else "far"
+            return "settled" if self.floor_agrees(cfg.settle_patience_max_m, cfg.settle_patience_s) else "far"
         return None
 
-    def floor_distance(self) -> float:
-        """Median distance the floor measured over the settle window [m]; NaN when fewer than
-        ``arrive_floor_min_fraction`` of its frames measured it."""
+    def floor_distance(self, window_s: float | None = None) -> float:
+        """Median distance the floor measured over the last ``window_s`` (default the settle window)
+        [m]; NaN when fewer than ``arrive_floor_min_fraction`` of its frames, and fewer than
+        ``arrive_floor_min_readings``, measured it."""
         cfg = self.config
         now = self.history[-1][0]
-        floor = np.array([h[3] for h in self.history if h[0] >= now - cfg.settle_window_s])
+        window_s = cfg.settle_window_s if window_s is None else window_s
+        floor = np.array([h[3] for h in self.history if h[0] >= now - window_s])
         ok = np.isfinite(floor)
-        if not ok.any() or ok.mean() < cfg.arrive_floor_min_fraction:
+        if not ok.any() or (ok.mean() < cfg.arrive_floor_min_fraction and ok.sum() < cfg.arrive_floor_min_readings):
             return math.nan
         return float(np.median(floor[ok]))
 
-    def floor_agrees(self, bound_m: float) -> bool:
+    def floor_agrees(self, bound_m: float, window_s: float | None = None) -> bool:
         """The floor measures an arrival within ``bound_m``. Unmeasured, it agrees only when not
         required: a goal's scale from its neighbours can be ten times too small on a deep view, where
         the image barely changes over a metre — then the floor is the only metric witness left."""
-        d = self.floor_distance()
+        d = self.floor_distance(window_s)
         return d < bound_m if self.floor_required else not d >= bound_m
 
     def floor_scale(self, scale_m: float) -> float | None:
@@ -599,7 +601,7 @@ class Navigator:
                 elif arrived:
                     self._move(STOP)
                     out.status = NavStatus.ARRIVED
-                    floor = leg.settle.floor_distance()
+                    floor = leg.settle.floor_distance(cfg.settle_patience_s if arrived == "settled" else None)
                     out.message = f"arrived at node {goal}" + (
                         "" if arrived == "precise" else f" (settled {s.position_error_m:.2f} m off by its estimate: no further progress)") + (
                         f" (the floor measures {floor:.2f} m)" if math.isfinite(floor) else
