@@ -385,13 +385,16 @@ class Navigator:
         Sets ``self._here``; raises _Failed when no place is recognised in a full turn.
 
         An answer at ``min_confidence`` is taken at once; a weaker one (at least
-        ``start_verified_confidence``) once the servo's geometry confirms it (:meth:`_start_pose`)."""
+        ``start_verified_confidence``) once the servo's geometry confirms it (:meth:`_start_pose`);
+        after a full turn without either, the best answer of at least ``start_fallback_confidence``
+        the geometry confirmed, once its view is found again (:meth:`_face_again`)."""
         cfg = self.config
         best: Localization | None = None
         turned = 0.0
         found: tuple[Localization, str] | None = None
         fallback: tuple[Localization, str] | None = None  # the best confirmed answer below start_verified_confidence
         pending: tuple[Localization, RelativePose, Query] | None = None  # (answer, its pose, that frame)
+        weakest = min(cfg.start_verified_confidence, cfg.start_fallback_confidence)  # worth confirming
         while True:
             image, q = self._look(localizing=True)
             if pending is not None:  # the previous frame's candidate: does its geometry hold after the turn?
@@ -415,7 +418,6 @@ class Navigator:
             if loc.localized:
                 found = (loc, f"confidence {loc.confidence:.2f}")
                 break
-            weakest = min(cfg.start_verified_confidence, cfg.start_fallback_confidence)
             if loc.confidence >= weakest and (pose := self._start_pose(q, loc.node)) is not None:
                 pending = (loc, pose, q)
             if turned >= 2 * math.pi and pending is None:
