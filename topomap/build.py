@@ -664,6 +664,7 @@ def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progres
     # one entry per pair in submission order, and (nid, None, None, True) for nodes without pairs
     order: deque[tuple[int, int | None, int | None, bool]] = deque()
     seq_adj = _sequential_adjacency(tmap)  # loop edges do not change it: one for the whole stage
+    horizon = tmap.camera.fitted_to(*tmap.working_size).cy  # the centre row of the keyframes [px]
 
     def tasks():
         for nid, pairs in _loop_candidates(tmap, new_ids, cfg, seq_adj):
@@ -690,7 +691,7 @@ def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progres
         nodes_without_pairs()
         nid, a, b, last = order.popleft()
         if (v.inliers >= cfg.loop_min_inliers and v.inlier_ratio >= cfg.loop_min_inlier_ratio
-                and _off_floor_inliers(tmap, a, b, v) >= cfg.loop_min_off_floor_inliers):
+                and _off_floor_inliers(tmap, a, b, v, horizon) >= cfg.loop_min_off_floor_inliers):
             accepted.append((a, b, v))
         if last:
             for a, b, v in _best_per_visit(nid, accepted, seq_adj, cfg):
@@ -704,13 +705,12 @@ def _close_loops(tmap: TopoMap, new_ids: list[int], cfg: BuildConfig, on_progres
     return added
 
 
-def _off_floor_inliers(tmap: TopoMap, a: int, b: int, v: Verification) -> int:
-    """Inliers of ``v`` (node ``a`` to node ``b``) above the image's centre row in both keyframes."""
+def _off_floor_inliers(tmap: TopoMap, a: int, b: int, v: Verification, horizon_px: float) -> int:
+    """Inliers of ``v`` (node ``a`` to node ``b``) above row ``horizon_px`` in both keyframes."""
     m = v.inlier_matches
-    cy = tmap.camera.fitted_to(*tmap.working_size).cy
     ya = tmap.nodes[a].features.keypoints[m.ia, 1]
     yb = tmap.nodes[b].features.keypoints[m.ib, 1]
-    return int(np.count_nonzero((ya < cy) & (yb < cy)))
+    return int(np.count_nonzero((ya < horizon_px) & (yb < horizon_px)))
 
 
 def _sequential_adjacency(tmap: TopoMap) -> dict[int, list[int]]:

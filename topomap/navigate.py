@@ -556,10 +556,8 @@ class Navigator:
         """Whether ``node``'s keyframe shows the floor the arrival check measures. A view filled by a
         close wall does not (its features all lie above the floor line): no image taken there can
         measure the floor, so requiring it would refuse every arrival — image and servo decide."""
-        kp = self.map.nodes[node].features.keypoints
-        cam = self.map.camera
-        below = (kp[:, 1] - cam.cy) / cam.fy > self.servo.config.geometry.floor_min_y
-        return int(np.count_nonzero(below)) >= FLOOR_MIN_KEYFRAME_POINTS
+        y = self.map.camera.normalize(self.map.nodes[node].features.keypoints)[:, 1]  # as the servo's floor sees them
+        return int(np.count_nonzero(y > self.servo.config.geometry.floor_min_y)) >= FLOOR_MIN_KEYFRAME_POINTS
 
     def _start_leg(self, nodes: list[int]) -> _Leg:
         """The one place a route's loop state starts (first plan and every re-plan)."""
