@@ -73,6 +73,7 @@ def test_from_dict_defaults_and_rejects():
         (lambda: LocalizeConfig(bow_max_postings=0), "bow_max_postings"),
         (lambda: LocalizeConfig(bow_max_postings=1.5), "bow_max_postings"),
         (lambda: LocalizeConfig(declare_min_frame_ratio=0.9), "declare_min_frame_ratio"),
+        (lambda: LocalizeConfig(declare_min_inliers=-1), "declare_min_inliers"),
         (lambda: LocalizeConfig(declare_min_frame_ratio=20.0), "declare_min_frame_ratio"),
     ],
 )

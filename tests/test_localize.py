@@ -85,6 +85,19 @@ def test_second_pass_single_frame(route, second_pass):
     assert all(r.localized for r in answers)
 
 
+def test_a_single_frame_verified_at_chance_level_is_not_declared(route, second_pass):
+    """A look-alike place verifies with the inliers chance alignments reach (15-28 measured), and
+    its appearance can still make the answer probable: below ``declare_min_inliers`` a single frame
+    keeps its answer and its confidence but is not declared."""
+    q = second_pass[len(XS) // 2]
+    r = route.loc.localize_query(q)
+    assert r.localized and r.inliers >= 15
+    for need, declared in ((r.inliers, True), (r.inliers + 1, False)):
+        other = Localizer(route.map, LocalizeConfig(declare_min_inliers=need)).localize_query(q)
+        assert (other.node, other.confidence, other.inliers) == (r.node, r.confidence, r.inliers)
+        assert other.localized is declared
+
+
 @pytest.mark.parametrize("what", ["noise", "flat", "other scene", "another scene"])
 def test_an_unrelated_image_is_unknown(route, what):
     rng = np.random.default_rng(1)

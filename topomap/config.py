@@ -252,6 +252,10 @@ class LocalizeConfig:
     # confidence is the estimated probability that the answer is right, so 0.9 keeps the precision of
     # declared answers at about 0.95 (their mean probability); uncalibrated, it is the raw softmax mass.
     min_confidence: float = 0.9
+    # A single frame is declared only when its answer verifies with at least this many inliers: look-alike
+    # places (a repeated photograph, tiled floor) verify at 15-28 and the calibration, fitted on the map's
+    # own views, can still give them 0.9-0.99 (docs/localization.md, "Chance-level verifications")
+    declare_min_inliers: int = 25
     use_calibration: bool = True  # use the map's calibration when it has one fitted for this scoring
     # temporal filter (sequence mode): states are (node, speed along the map's sequence chain)
     max_speed_nodes: float = 1.5  # fastest motion along a chain [nodes/frame], both directions
@@ -308,8 +312,8 @@ class LocalizeConfig:
                 raise ConfigError(f"{name} must lie in [0, 1)")
         if not 1.0 <= self.declare_min_frame_ratio <= self.max_frame_ratio:
             raise ConfigError("declare_min_frame_ratio must lie in [1, max_frame_ratio]")
-        if self.elsewhere_min_inliers < 0:
-            raise ConfigError("elsewhere_min_inliers must be >= 0")
+        if self.elsewhere_min_inliers < 0 or self.declare_min_inliers < 0:
+            raise ConfigError("elsewhere_min_inliers and declare_min_inliers must be >= 0")
         if not 0.0 < self.verified_elsewhere < self.verified_in_map < 1.0:
             raise ConfigError("need 0 < verified_elsewhere < verified_in_map < 1")
         if self.recent_frames < 0 or not self.recent_min_spread > 0:

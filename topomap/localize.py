@@ -489,11 +489,13 @@ class Localizer:
     def localize_query(self, q: Query, exclude: Iterable[int] = ()) -> Localization:
         """Localization of a prepared query; node ids in ``exclude`` are never answered."""
         loc, _ = self._single_frame(q, self.rows_of(exclude))
-        if loc.localized and not (loc.verification is not None and loc.verification.verified):
+        v = loc.verification
+        if loc.localized and not (v is not None and v.verified and v.inliers >= self.config.declare_min_inliers):
             # never confidently wrong: one frame whose answer did not verify geometrically is not a
             # place recognised, however probable its appearance makes it (measured: a calibrated
-            # appearance-only answer declared a corridor frame to be in the Nordland map at 0.97);
-            # on maps without the keypoints to verify, the sequence filter is what can declare
+            # appearance-only answer declared a corridor frame to be in the Nordland map at 0.97),
+            # nor one verified only at the level a look-alike place reaches by chance; on maps
+            # without the keypoints to verify, the sequence filter is what can declare
             loc = dataclasses.replace(loc, status=LocalizationStatus.UNKNOWN)
         return loc
 
