@@ -10,7 +10,8 @@ from map_synth import scene, window
 from topomap.config import FeatureConfig, MatchConfig
 from topomap.errors import ConfigError
 from topomap.features import Features, extract
-from topomap.matching import Matches, match_descriptors, match_descriptors_grouped, verify
+from topomap.camera import CameraIntrinsics
+from topomap.matching import Matches, Verification, match_descriptors, match_descriptors_grouped, scene_scale, verify
 
 
 @pytest.fixture(scope="module")
@@ -132,3 +133,47 @@ def test_prosac_verifies_like_magsac(pair, kind):
     assert prosac.inliers >= 0.95 * magsac.inliers
     with pytest.raises(ConfigError, match="ransac_method"):
         MatchConfig(ransac_method="lmeds")
+
+
+@pytest.mark.parametrize("zoom, angle", [(1.0, 4.0), (1.3, 0.0), (1.3, 5.0), (0.8, -3.0)])
+def test_scene_scale_measures_the_zoom_not_the_rotation(texture, zoom, angle):
+    """A view closer to the scene shows it larger: scene_scale reads the zoom between two views
+    (what the epipolar inliers alone leave open) and ignores a rotation and shift."""
+    a = window(texture, 300.0)
+    h, w = a.shape
+    R = cv2.getRotationMatrix2D((w / 2, h / 2), angle, zoom)
+    R[0, 2] += 15.0
+    b = cv2.warpAffine(a, R, (w, h), borderMode=cv2.BORDER_REFLECT)
+    cam = CameraIntrinsics(fx=w, fy=w, cx=w / 2, cy=h / 2, width=w, height=h)  # ~53 deg across
+    fa, fb = extract(a, FeatureConfig()), extract(b, FeatureConfig())
+    v = verify(fb, fa)
+    assert v.verified
+    assert scene_scale(fb, fa, v, cam, cam) == pytest.approx(zoom, rel=0.05)
+    back = verify(fa, fb)
+    assert scene_scale(fa, fb, back, cam, cam) == pytest.approx(1.0 / zoom, rel=0.05)
+
+
+def test_scene_scale_is_unchanged_by_turning_the_camera():
+    """Rays turned by a yaw of 30 deg: pixel distances stretch toward the image's edge, the angles
+    between the rays do not."""
+    cam = CameraIntrinsics(fx=300.0, fy=300.0, cx=160.0, cy=120.0, width=320, height=240)
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([rng.uniform(-1, 1, 60), rng.uniform(-0.5, 0.5, 60), rng.uniform(4, 6, 60)])
+    yaw = np.radians(30.0)
+    R = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
+    fa = Features(cam.project(pts).astype(np.float32), np.zeros((60, 32), np.uint8), "orb", (320, 240))
+    fb = Features(cam.project(pts @ R.T).astype(np.float32), np.zeros((60, 32), np.uint8), "orb", (320, 240))
+    idx = np.arange(60, dtype=np.int32)
+    v = Verification(Matches(idx, idx, np.zeros(60, np.float32)), np.ones(60, bool), np.eye(3), 1.0, 0.0)
+    assert scene_scale(fa, fb, v, cam, cam) == pytest.approx(1.0, abs=1e-6)
+    closer = Features(cam.project(pts * np.array([1, 1, 0.5])).astype(np.float32), fa.descriptors, "orb", (320, 240))
+    assert scene_scale(closer, fa, v, cam, cam) > 1.5  # half the depth: the scene about twice as large
+
+
+def test_scene_scale_needs_enough_inliers(pair):
+    a, b, _ = pair
+    fa, fb = extract(a, FeatureConfig()), extract(b, FeatureConfig())
+    v = verify(fa, fb)
+    cam = CameraIntrinsics(fx=300.0, fy=300.0, cx=a.shape[1] / 2, cy=a.shape[0] / 2)
+    few = Verification(v.matches, v.inlier_mask & (np.cumsum(v.inlier_mask) <= 5), v.F, v.similarity, v.flow_px)
+    assert np.isnan(scene_scale(fa, fb, few, cam, cam))

@@ -573,3 +573,49 @@ def test_start_confirm_turn_must_be_positive(value):
 
     with pytest.raises(ConfigError, match="start_confirm_every_s"):
         NavigateConfig(start_confirm_every_s=value)
+
+
+def test_a_re_localization_takes_the_near_node_at_the_frame_s_scale():
+    """World 126 ep 0: lost near its goal, the robot re-localized on keyframes 2.4-6.4 m farther down
+    the same view (33-64 inliers, more than the keyframe it stood at). Of the near nodes that verify,
+    the one showing the scene at the frame's scale is taken, the most inliers only among such."""
+    from types import SimpleNamespace
+
+    from topomap.camera import CameraIntrinsics
+    from topomap.config import NavigateConfig
+    from topomap.features import Features
+    from topomap.matching import Matches, Verification
+
+    cam = CameraIntrinsics(fx=300.0, fy=300.0, cx=160.0, cy=120.0, width=320, height=240)
+    rng = np.random.default_rng(4)
+    scene = np.column_stack([rng.uniform(-2, 2, 80), rng.uniform(-1, 0.5, 80), rng.uniform(6, 9, 80)])
+
+    def seen_from(forward_m: float) -> Features:
+        return Features(cam.project(scene - [0.0, 0.0, forward_m]).astype(np.float32), np.zeros((80, 32), np.uint8),
+                        "orb", (320, 240))
+
+    here, farther = 1, 2  # keyframes at the robot's place and 2.5 m down its view
+    nodes = {here: SimpleNamespace(features=seen_from(0.1)), farther: SimpleNamespace(features=seen_from(2.5))}
+    inliers = {here: 40, farther: 70}
+
+    def match(q, node):
+        idx = np.arange(inliers[node], dtype=np.int32)
+        return Verification(Matches(idx, idx, np.zeros(len(idx), np.float32)), np.ones(len(idx), bool), np.eye(3), 0.5, 0.0)
+
+    local = SimpleNamespace(node=farther, candidates=[SimpleNamespace(node=farther, inliers=55),
+                                                      SimpleNamespace(node=here, inliers=30)])
+    q = SimpleNamespace(features=seen_from(0.0))
+    for tolerance, expect in ((NavigateConfig().recover_scale_tolerance, here), (100.0, farther)):
+        nav = SimpleNamespace(_match=match, map=SimpleNamespace(nodes=nodes, camera=cam), camera=cam,
+                              config=NavigateConfig(recover_scale_tolerance=tolerance))
+        node, n_inliers, scale = Navigator._nearest_verified(nav, q, local)
+        assert (node, n_inliers) == (expect, inliers[expect])
+    assert scale < 0.8  # the farther keyframe shows the scene a third larger than the frame
+
+
+def test_recover_scale_tolerance_is_a_factor():
+    from topomap.config import NavigateConfig
+    from topomap.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="recover_scale_tolerance"):
+        NavigateConfig(recover_scale_tolerance=0.9)

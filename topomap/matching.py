@@ -15,11 +15,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from topomap.camera import CameraIntrinsics
 from topomap.config import MatchConfig
 from topomap.errors import ConfigError
 from topomap.features import Features, hamming
 
-__all__ = ["Matches", "Verification", "match_descriptors", "match_descriptors_grouped", "verify", "MIN_MODEL_POINTS"]
+__all__ = ["Matches", "Verification", "match_descriptors", "match_descriptors_grouped", "verify", "scene_scale",
+           "MIN_MODEL_POINTS"]
 
 #: Correspondences the fundamental-matrix estimator needs.
 MIN_MODEL_POINTS = 8
@@ -238,3 +240,31 @@ def verify(a: Features, b: Features, config: MatchConfig = MatchConfig(), matche
     similarity = n / max(1, min(len(a), len(b)))
     flow = float(np.median(np.linalg.norm(pa[inl] - pb[inl], axis=1)))
     return Verification(matches, inl, F, float(similarity), flow)
+
+
+
+#: Inliers at least this far [rad] from the inliers' mean direction take part in :func:`scene_scale`
+#: (closer ones make the ratio noise; 0.02 rad is ~5 px at the working resolution).
+SCALE_MIN_ANGLE_RAD = 0.02
+
+
+def _bearings(camera: CameraIntrinsics, pixels: np.ndarray) -> np.ndarray:
+    xy = camera.normalize(pixels)
+    rays = np.column_stack([xy, np.ones(len(xy))])
+    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+
+def scene_scale(a: Features, b: Features, v: Verification, camera_a: CameraIntrinsics, camera_b: CameraIntrinsics
+                ) -> float:
+    """How much larger image A shows the verified scene than image B: the median, over the inliers, of
+    their angle from the inliers' mean viewing direction in A over that in B. Above 1 the camera of A
+    is closer to what both see (along the view: what the epipolar inliers alone cannot tell); angles
+    between rays do not change when a camera turns, so a rotation leaves it at 1 (pixel distances
+    would stretch toward the image's edges). NaN with fewer than 8 usable inliers."""
+    m = v.inlier_matches
+    if len(m) < MIN_MODEL_POINTS:
+        return float("nan")
+    ba, bb = _bearings(camera_a, a.keypoints[m.ia]), _bearings(camera_b, b.keypoints[m.ib])
+    ra, rb = (np.arccos(np.clip(r @ (r.sum(axis=0) / np.linalg.norm(r.sum(axis=0))), -1.0, 1.0)) for r in (ba, bb))
+    ok = rb > SCALE_MIN_ANGLE_RAD
+    return float(np.median(ra[ok] / rb[ok])) if np.count_nonzero(ok) >= MIN_MODEL_POINTS else float("nan")

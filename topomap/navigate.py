@@ -85,7 +85,7 @@ from topomap.errors import NoRouteError
 from topomap.features import Features
 from topomap.graph import TopoMap
 from topomap.localize import Localization, Localizer, Query
-from topomap.matching import Verification, verify
+from topomap.matching import Verification, scene_scale, verify
 from topomap.motion import STOP, Command, VehicleKind, vehicle_kind, wrap_angle
 from topomap.plan import Planner, Route
 from topomap.relative_motion import SCALE_CLIP_FACTOR, KeyframePairs
@@ -713,7 +713,8 @@ class Navigator:
                 local = self.localizer.localize_query(q, exclude=away)
                 inliers = local.verification.inliers if local.verification is not None else 0
                 if inliers >= cfg.switch_min_inliers:
-                    found = (local.node, f"verified near node {self._last_good} ({inliers} inliers)")
+                    node, inliers, scale = self._nearest_verified(q, local)
+                    found = (node, f"verified near node {self._last_good} ({inliers} inliers, the scene at {scale:.2f}x)")
                     break
                 if inliers >= min_inliers and (best_local is None or inliers > best_local[0]):
                     best_local = (inliers, local.node)
@@ -744,6 +745,26 @@ class Navigator:
         self._count("re-localizations")
         self._here = found[0]
         yield NavEvent(EventKind.LOCALIZED, self._time, f"at node {found[0]} ({found[1]})", subgoal=found[0])
+
+    def _nearest_verified(self, q: Query, local: Localization) -> tuple[int, int, float]:
+        """Of the near nodes the localizer shortlisted, the one the robot is at. Among those that verify
+        with ``switch_min_inliers`` (the servo's matcher), the ones showing the scene at the frame's
+        scale within ``recover_scale_tolerance`` (:func:`~topomap.matching.scene_scale`), the most
+        inliers first; without one, the scale closest to the frame's — a keyframe metres farther down
+        the same view verifies as well, often with more inliers; with no such node, the best verified.
+        Returns (node, inliers, scale of the scene in the frame over the keyframe; NaN if not chosen by it)."""
+        shortlist = [local.node] + [c.node for c in local.candidates if c.node != local.node and c.inliers >= 0]
+        checks = [(n, self._match(q, n)) for n in shortlist]
+        good = [(n, v) for n, v in checks if v.inliers >= self.config.switch_min_inliers]
+        if not good:
+            node, v = max(checks, key=lambda c: c[1].inliers)  # the first of equals: the localizer's order
+            return node, v.inliers, math.nan
+        scales = [scene_scale(q.features, self.map.nodes[n].features, v, self.camera, self.map.camera) for n, v in good]
+        off = [abs(math.log(sc)) if math.isfinite(sc) and sc > 0 else math.inf for sc in scales]
+        inside = [i for i in range(len(good)) if off[i] < math.log(self.config.recover_scale_tolerance)]
+        k = (max(inside, key=lambda i: (good[i][1].inliers, -i)) if inside
+             else min(range(len(good)), key=lambda i: (off[i], -good[i][1].inliers)))
+        return good[k][0], good[k][1].inliers, scales[k]
 
     def _count(self, what: str, amount: float = 1.0) -> None:
         self._tried[what] = self._tried.get(what, 0.0) + amount
