@@ -674,8 +674,9 @@ class NavigateConfig:
     # answer there beats a look-alike elsewhere (measured: re-localizations 11-18 m off).
     recover_local_hops: int = 3
     # ... and of the near nodes that verify, one showing the scene at the frame's scale within this factor
-    # (most inliers first): a keyframe farther down the same view verifies as well (docs/navigation.md)
-    recover_scale_tolerance: float = 1.15
+    # (most inliers first): a keyframe farther down the same view verifies as well (docs/navigation.md;
+    # None: the localizer's answer among the near nodes)
+    recover_scale_tolerance: float | None = 1.15
     # An answer farther away is taken only if its calibrated confidence reaches this and a second
     # look (after a scan step) answers the same place (within one hop).
     recover_far_confidence: float = 0.9
@@ -723,7 +724,7 @@ class NavigateConfig:
             raise ConfigError("navigate arrive_floor_max_m and start_confirm_heading_deg must be positive")
         if self.recover_backoff_s < 0 or self.recover_local_hops < 0:
             raise ConfigError("navigate recover_backoff_s and recover_local_hops must be >= 0")
-        if not self.recover_scale_tolerance >= 1.0:
+        if self.recover_scale_tolerance is not None and not self.recover_scale_tolerance >= 1.0:
             raise ConfigError("navigate recover_scale_tolerance must be >= 1 (a factor of the scene's scale)")
 
 

@@ -713,8 +713,11 @@ class Navigator:
                 local = self.localizer.localize_query(q, exclude=away)
                 inliers = local.verification.inliers if local.verification is not None else 0
                 if inliers >= cfg.switch_min_inliers:
-                    node, inliers, scale = self._nearest_verified(q, local)
-                    found = (node, f"verified near node {self._last_good} ({inliers} inliers, the scene at {scale:.2f}x)")
+                    if cfg.recover_scale_tolerance is None:
+                        found = (local.node, f"verified near node {self._last_good} ({inliers} inliers)")
+                    else:
+                        node, inliers, scale = self._nearest_verified(q, local)
+                        found = (node, f"verified near node {self._last_good} ({inliers} inliers, the scene at {scale:.2f}x)")
                     break
                 if inliers >= min_inliers and (best_local is None or inliers > best_local[0]):
                     best_local = (inliers, local.node)
