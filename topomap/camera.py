@@ -167,6 +167,12 @@ class CameraIntrinsics:
         uvw = P @ self.K.T
         return uvw[:, :2] / uvw[:, 2:3]
 
+    def rays(self, pixels: np.ndarray) -> np.ndarray:
+        """Unit viewing rays (N, 3) in the camera frame of pixels (N, 2), undistorted."""
+        xy = self.normalize(pixels)
+        rays = np.column_stack([xy, np.ones(len(xy))])
+        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
     def bearing(self, pixels: np.ndarray) -> np.ndarray:
         """Horizontal bearing ``atan2(X, Z)`` [rad] of each pixel (N, 2) -> (N,); positive to the right."""
         return np.arctan(self.normalize(pixels)[:, 0])

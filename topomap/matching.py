@@ -242,16 +242,9 @@ def verify(a: Features, b: Features, config: MatchConfig = MatchConfig(), matche
     return Verification(matches, inl, F, float(similarity), flow)
 
 
-
 #: Inliers at least this far [rad] from the inliers' mean direction take part in :func:`scene_scale`
 #: (closer ones make the ratio noise; 0.02 rad is ~5 px at the working resolution).
 SCALE_MIN_ANGLE_RAD = 0.02
-
-
-def _bearings(camera: CameraIntrinsics, pixels: np.ndarray) -> np.ndarray:
-    xy = camera.normalize(pixels)
-    rays = np.column_stack([xy, np.ones(len(xy))])
-    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
 
 def scene_scale(a: Features, b: Features, v: Verification, camera_a: CameraIntrinsics, camera_b: CameraIntrinsics
@@ -264,7 +257,7 @@ def scene_scale(a: Features, b: Features, v: Verification, camera_a: CameraIntri
     m = v.inlier_matches
     if len(m) < MIN_MODEL_POINTS:
         return float("nan")
-    ba, bb = _bearings(camera_a, a.keypoints[m.ia]), _bearings(camera_b, b.keypoints[m.ib])
+    ba, bb = camera_a.rays(a.keypoints[m.ia]), camera_b.rays(b.keypoints[m.ib])
     ra, rb = (np.arccos(np.clip(r @ (r.sum(axis=0) / np.linalg.norm(r.sum(axis=0))), -1.0, 1.0)) for r in (ba, bb))
     ok = rb > SCALE_MIN_ANGLE_RAD
     return float(np.median(ra[ok] / rb[ok])) if np.count_nonzero(ok) >= MIN_MODEL_POINTS else float("nan")

@@ -717,7 +717,8 @@ class Navigator:
                         found = (local.node, f"verified near node {self._last_good} ({inliers} inliers)")
                     else:
                         node, inliers, scale = self._nearest_verified(q, local)
-                        found = (node, f"verified near node {self._last_good} ({inliers} inliers, the scene at {scale:.2f}x)")
+                        at = f", the scene at {scale:.2f}x" if math.isfinite(scale) else ""
+                        found = (node, f"verified near node {self._last_good} ({inliers} inliers{at})")
                     break
                 if inliers >= min_inliers and (best_local is None or inliers > best_local[0]):
                     best_local = (inliers, local.node)
