@@ -235,7 +235,8 @@ class LocalizeConfig:
     # Verification matches a query descriptor only against the node's descriptors under the same
     # vocabulary-tree node (at the deepest level with <= match_groups nodes), ORB-SLAM's guided search:
     # ~0.3 ms instead of ~1.8 ms per candidate. Binary matches must also lie within guided_max_hamming
-    # bits: a group may offer a single candidate, where the ratio test cannot judge (ORB-SLAM: 50).
+    # bits of ORB's 256, the same share of a longer descriptor's (AKAZE: 114 of 488): a group may offer
+    # a single candidate, where the ratio test cannot judge (ORB-SLAM: 50).
     # Corridor, measured: 64 bits let chance inliers through (castle frames "localized" in sequence
     # mode on 27 % of frames), 56 and 60 none; R@1 single 0.631 / 0.640, AUC 0.529 / 0.505 (brute
     # force 0.622 / 0.449), sequence R@1 0.856 either way.

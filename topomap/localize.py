@@ -46,7 +46,7 @@ import scipy.sparse as sp
 from topomap.calibration import Calibration, ImageQuality, image_quality, logit, quality_evidence
 from topomap.config import LocalizeConfig
 from topomap.errors import ConfigError, IndexMissingError, unknown_choice
-from topomap.features import Features, extract
+from topomap.features import Features, detector, extract
 from topomap.graph import TopoMap
 from topomap.images import to_gray_u8, to_working_resolution
 from topomap.matching import Verification, match_descriptors_grouped, verify
@@ -80,6 +80,8 @@ MIN_FEATURES_FOR_BOW = 100
 WORD_CACHE_NODES = 4096
 #: A localization lists at least this many candidates, whatever the verified shortlist's size.
 MIN_CANDIDATES = 10
+#: The descriptor length ``LocalizeConfig.guided_max_hamming`` is given for (ORB's); longer ones scale it.
+ORB_DESCRIPTOR_BITS = 256
 #: An experience of fewer nodes is standardised with the whole map (a median of a few scores says little).
 MIN_EXPERIENCE_NODES = 16
 
@@ -401,7 +403,13 @@ class Localizer:
 
     @property
     def _max_distance(self) -> float | None:
-        return float(self.config.guided_max_hamming) if self._vocabulary.binary else None
+        """The guided matches' Hamming cap in this map's descriptor bits: ``guided_max_hamming`` is
+        given for ORB's 256 bits and scales with the length (AKAZE's 488-bit MLDB: 114), the same
+        share of differing bits; SIFT (not binary) has none."""
+        if not self._vocabulary.binary:
+            return None
+        bits = 8 * detector(self._vocabulary.kind).descriptor_size
+        return self.config.guided_max_hamming * bits / ORB_DESCRIPTOR_BITS
 
     def _words_of_node(self, node: int, f: Features) -> np.ndarray:
         """The vocabulary word of each feature of ``node``: from the index (stored at indexing time),
