@@ -48,6 +48,7 @@ Run: ``python benchmarks/bench_localize.py [--dataset corridor|nordland|all] [--
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import tempfile
@@ -426,6 +427,30 @@ def foreign(maps: dict[str, object]) -> None:
                   f"{sum(r.localized for r in res):9d}{max(r.confidence for r in res):9.2f}")
 
 
+def labelled_folds(name: str, m, names, images, truth) -> None:
+    """``topomap index --calibrate-on``: the calibration fitted on labelled queries, two folds (fit on
+    one half of the queries, scored on the other), against the map's self-supervised calibration on
+    the same half; single frames (the sequence confidence is the filter's posterior, not refitted)."""
+    from topomap.groundtruth import right_nodes
+    from topomap.self_supervision import calibrate_on_queries
+
+    half = len(names) // 2
+    folds = [(range(0, half), range(half, len(names))), (range(half, len(names)), range(0, half))]
+    print(f"\nlabelled calibration, {name}: fitted on one half of the queries (`topomap index --calibrate-on`), "
+          "scored on the other half; single frame")
+    print(f"{'scored on':<12}{'calibration':<18}{'top-1':>7}{'decl':>7}{'decl&ok':>8}{'prec':>7}{'ECE':>7}{'AUC':>7}")
+    good_of = right_nodes(truth, m)
+    for fit, held in folds:
+        label = f"{held.start}-{held.stop - 1}"
+        for kind in ("self-supervised", "labelled"):
+            mm = dataclasses.replace(m, meta=dict(m.meta))
+            if kind == "labelled":
+                calibrate_on_queries(mm, [(images[i], good_of(names[i])) for i in fit], seed=mm.config.seed)
+            res, _, _, _ = run_topomap(mm, [names[i] for i in held], [images[i] for i in held], truth, False)
+            print(f"{label:<12}{kind:<18}{res.recall_at[1]:7.3f}{res.declared:7.3f}{res.declared_right:8.3f}"
+                  f"{res.declared_precision:7.3f}{res.ece:7.3f}{res.auc:7.3f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--dataset", choices=["corridor", "nordland", "all"], default="all")
@@ -442,6 +467,7 @@ def main() -> None:
             data["nordland"] = nordland(Path(tmp))
         for name, (m, names, images, truth, seqslam_top1, near) in data.items():
             maps[name] = m
+            labelled_folds(name, m, names, images, truth)
             if not args.no_conditions:
                 appearance_change(name, m, names, images, truth, seqslam_top1, near)
         foreign(maps)

@@ -17,11 +17,13 @@ from topomap.build import BuildProgress, build_index, build_map, calibrate
 from topomap.calibration import Calibration
 from topomap.camera import load_camera
 from topomap.config import BUILD_PRESETS, build_preset
-from topomap.errors import DatasetError
+from topomap.errors import CalibrationError, DatasetError
 from topomap.features import detector
+from topomap.groundtruth import right_nodes
 from topomap.images import open_sequence
 from topomap.parallel import make_executor
 from topomap.relative_motion import annotate_edges
+from topomap.self_supervision import calibrate_on_queries
 from topomap.store import (
     check_writable,
     export_graphml,
@@ -32,6 +34,7 @@ from topomap.store import (
     upgrade_map,
 )
 from topomap_cli.app import app, console, err_console, fail, print_json
+from topomap_cli.localize import GROUND_TRUTH_HELP, read_truth
 
 
 class _RateColumn(TextColumn):
@@ -192,6 +195,8 @@ def info(
             "created_utc": m.meta.get("created_utc"), "topomap_version": m.meta.get("topomap_version"),
             "build_config": dataclasses.asdict(m.config),
             "sequence_sources": [s.get("source") for s in m.sequences]}
+    cal = Calibration.from_meta(m.meta)
+    data["calibration"] = cal.to_dict() if cal is not None else None
     if as_json:
         print_json(data)
         return
@@ -282,24 +287,58 @@ def _calibration_line(m, map_path: Path) -> str:
     if cal is None:
         return f"no: confidences are raw (`topomap index {map_path}` fits one)"
     f = cal.fitted_for
+    if f.get("labelled"):
+        return f"fitted on {f.get('samples', '?')} labelled queries ({f.get('right', '?')} answered right), descriptor {f.get('descriptor', '?')}"
     return f"self-supervised, {f.get('samples', '?')} samples ({f.get('right', '?')} right), descriptor {f.get('descriptor', '?')}"
+
+
+def _labelled(m, query: Path, topic: str | None, truth):
+    """(image, right node ids) of each query frame, streamed (a query the ground truth does not
+    list has no right node: a place not in the map, as ``topomap eval`` counts it)."""
+    good_of = right_nodes(truth, m)
+    for f in open_sequence(query, topic=topic):
+        yield f.image, good_of(f.name)
 
 
 @app.command()
 def index(
     map_path: Path = typer.Argument(..., metavar="MAP", help="Map file."),
     no_calibration: bool = typer.Option(False, "--no-calibration", help="Rebuild the index only; keep confidences raw."),
+    calibrate_on: Path = typer.Option(None, "--calibrate-on", metavar="QUERIES",
+                                      help="Fit the calibration on these labelled queries (folder, video, ROS bag; "
+                                           "with --ground-truth) instead of the map's own views."),
+    topic: str = typer.Option(None, "--topic", help="Image topic of a --calibrate-on ROS bag."),
+    ground_truth: str = typer.Option(None, "--ground-truth", help="Of the --calibrate-on queries: " + GROUND_TRUTH_HELP),
+    map_poses: Path = typer.Option(None, "--map-poses", help="Poses CSV of the map's frames (with a poses ground truth)."),
+    radius: float = typer.Option(None, "--radius", help="Distance [m] within which a map frame shows the query's place."),
+    tolerance: int = typer.Option(0, "--tolerance", help="same-name: also accept this many frames before/after."),
 ) -> None:
-    """(Re)build a map's place-recognition index and refit its confidence calibration, in place."""
+    """(Re)build a map's place-recognition index and refit its confidence calibration, in place.
+
+    The calibration is self-supervised (the map's own views) unless --calibrate-on gives labelled
+    queries: a traversal with ground truth shows how hard a real one is, which the map's own views
+    cannot (docs/localization.md, "Calibration")."""
+    if (calibrate_on is None) != (ground_truth is None):
+        fail("--calibrate-on and --ground-truth go together: the labelled queries and their ground truth")
+    if calibrate_on is not None and no_calibration:
+        fail("--calibrate-on fits a calibration; drop --no-calibration")
     # the write lock is held from reading to the commit; keyframe images are read for the calibration
     with open_for_update(map_path, images=not no_calibration) as update:
         m = update.map
+        truth = None
+        if calibrate_on is not None:  # a wrong ground truth fails before the (slow) index
+            truth = read_truth(m, calibrate_on, topic, ground_truth, map_poses, radius, tolerance)
         build_index(m)
         if m.index is None and not m.arrays:
             fail(f"{map_path} has too few features to index")
         annotate_edges(m)  # edges of older maps get their keyframe-pair geometry too
         cal = None
-        if not no_calibration:
+        if truth is not None:
+            try:
+                cal = calibrate_on_queries(m, _labelled(m, calibrate_on, topic, truth), seed=m.config.seed)
+            except CalibrationError as e:
+                fail(f"{e} (the map is unchanged)")
+        elif not no_calibration:
             m.config = dataclasses.replace(m.config, calibration=dataclasses.replace(m.config.calibration, enabled=True))
             cal = calibrate(m)
         update.commit()

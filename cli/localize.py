@@ -109,12 +109,31 @@ def _warn_uncalibrated(loc: Localizer, map_path: Path) -> None:
                           f"are raw scores, not probabilities (`topomap index {map_path}` fits one)")
 
 
+def read_truth(m, query: Path, topic: str | None, ground_truth: str, map_poses: Path | None, radius: float | None,
+               tolerance: int):
+    """The queries' :class:`~topomap.groundtruth.GroundTruth` from the ``--ground-truth`` options."""
+    from topomap.groundtruth import from_poses, read_correspondences, read_poses, same_name
+
+    if ground_truth == "same-name":
+        return same_name(open_sequence(query, topic=topic).names or [], m, tolerance)
+    gt_path = Path(ground_truth)
+    if map_poses is not None or radius is not None:
+        if map_poses is None or radius is None:
+            raise DatasetError("a poses ground truth needs both --map-poses and --radius")
+        return from_poses(read_poses(gt_path), read_poses(map_poses), m, radius)
+    return read_correspondences(gt_path, m)
+
+
+GROUND_TRUTH_HELP = ("Correspondence CSV (query_file,matching_ref_indices|files), 'same-name', or a query poses "
+                     "CSV (with --map-poses and --radius).")
+
+
 @app.command("eval")
 def eval_(
     map_path: Path = typer.Argument(..., metavar="MAP", help="Map file."),
     query: Path = typer.Argument(..., help="Query image folder, video or ROS bag."),
     topic: str = typer.Option(None, "--topic", help=_TOPIC_HELP),
-    ground_truth: str = typer.Option(..., "--ground-truth", help="Correspondence CSV (query_file,matching_ref_indices|files), 'same-name', or a query poses CSV (with --map-poses and --radius)."),
+    ground_truth: str = typer.Option(..., "--ground-truth", help=GROUND_TRUTH_HELP),
     map_poses: Path = typer.Option(None, "--map-poses", help="Poses CSV of the map's frames (with a poses ground truth)."),
     radius: float = typer.Option(None, "--radius", help="Distance [m] within which a map frame shows the query's place (poses ground truth)."),
     tolerance: int = typer.Option(0, "--tolerance", help="same-name: also accept this many frames before/after."),
@@ -126,23 +145,12 @@ def eval_(
 ) -> None:
     """Precision-recall, AUC, Recall@1/5/10, recall at 100% precision, declared answers and calibration error."""
     from topomap.evaluate import evaluate, plot_pr
-    from topomap.groundtruth import from_poses, read_correspondences, read_poses, same_name
 
     m, loc = _localizer(map_path, None, descriptor, top_k, None)
     if plot is not None and not plot.parent.exists():
         raise DatasetError(f"folder {plot.parent} does not exist (for --plot)")
     # read the ground truth before the (slow) queries so a wrong file fails at once
-    seq_names = open_sequence(query, topic=topic).names or []
-    if ground_truth == "same-name":
-        truth = same_name(seq_names, m, tolerance)
-    else:
-        gt_path = Path(ground_truth)
-        if map_poses is not None or radius is not None:
-            if map_poses is None or radius is None:
-                raise DatasetError("a poses ground truth needs both --map-poses and --radius")
-            truth = from_poses(read_poses(gt_path), read_poses(map_poses), m, radius)
-        else:
-            truth = read_correspondences(gt_path, m)
+    truth = read_truth(m, query, topic, ground_truth, map_poses, radius, tolerance)
     t0 = time.perf_counter()
     results, skipped = _run(loc, query, sequence, as_json, topic)
     seconds = (time.perf_counter() - t0) / len(results)

@@ -620,3 +620,24 @@ def test_no_images_and_image_quality(runner, cli_app, walk, tmp_path):
     # the features, edges and index are the same: only the images differ
     a, b = map_contents(tmp_path / "bare.topomap"), map_contents(tmp_path / "full.topomap")
     assert a["feature"] == b["feature"] and a["edge"] == b["edge"] and a["array"] == b["array"]
+
+
+def test_index_calibrates_on_labelled_queries_and_refuses_half_an_option(runner, cli_app, tmp_path):
+    root = dataset("corridor")
+    m = tmp_path / "c.topomap"
+    ok(runner.invoke(cli_app, ["build", str(root / "ref"), "-o", str(m)]))
+    before = m.read_bytes()
+    queries, truth = str(root / "query"), str(root / "ground_truth.csv")
+    assert_error(runner.invoke(cli_app, ["index", str(m), "--calibrate-on", queries]), "go together")
+    assert_error(runner.invoke(cli_app, ["index", str(m), "--calibrate-on", queries, "--ground-truth",
+                                         str(tmp_path / "none.csv")]), "does not exist")
+    few = tmp_path / "few"
+    few.mkdir()
+    for name in sorted(p.name for p in (root / "query").iterdir())[:5]:
+        shutil.copy(root / "query" / name, few / name)
+    assert_error(runner.invoke(cli_app, ["index", str(m), "--calibrate-on", str(few), "--ground-truth", truth]),
+                 "5 labelled queries", "need at least 30", "the map is unchanged")
+    assert m.read_bytes() == before
+    result = ok(runner.invoke(cli_app, ["index", str(m), "--calibrate-on", queries, "--ground-truth", truth]))
+    assert "fitted on 111 labelled queries" in result.stdout
+    assert info_json(runner, cli_app, m)["calibration"]["fitted_for"]["labelled"] is True

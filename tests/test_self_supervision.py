@@ -8,16 +8,18 @@ import pickle
 
 import numpy as np
 import pytest
-from map_synth import scene, window, write_sequence
+from map_synth import FRAME_SIZE, scene, window, write_sequence
 
 from topomap.build import build_map
 from topomap.store import load_map, save_map
 from topomap.config import BuildConfig, FeatureConfig, LocalizeConfig
+from topomap.errors import CalibrationError
 from topomap.localize import Localizer
 from topomap.parallel import DaskExecutor, InlineExecutor, ProcessExecutor
 from topomap.self_supervision import (
     _without_images,
     calibrate_map,
+    calibrate_on_queries,
     experience_labels,
     keyframe_rng,
     keyframe_samples,
@@ -147,3 +149,44 @@ def test_the_same_calibration_on_dask(walk_map):
     with DaskExecutor(None, 2, processes=False) as ex:
         cal = calibrate_map(fresh(walk_map), queries=12, seed=3, executor=ex)
     assert cal == calibrate_map(fresh(walk_map), queries=12, seed=3)
+
+
+def _labelled_queries(m, seed: int, n: int):
+    """(image, right nodes) of ``n`` views of the walk seen again (noise, a few px aside; right: the
+    node of the nearest mapped view or one beside it) and as many of a place not in the map."""
+    rng = np.random.default_rng(seed)
+    node_of = [f.node for f in m.frames]
+    tex, other = scene(4, width=4000), scene(11, width=4000)
+    out = []
+    for _ in range(n):
+        x = rng.uniform(0.0, XS[-1])
+        i = int(np.argmin(np.abs(XS - x)))
+        img = window(tex, x, zoom=rng.uniform(0.8, 1.25), y=40.0 + rng.uniform(-6, 6))
+        img = np.clip(img + rng.normal(0, rng.uniform(5.0, 70.0), FRAME_SIZE[::-1]), 0, 255)
+        out.append((img.astype(np.uint8), {node_of[j] for j in range(max(0, i - 1), min(len(XS), i + 2))}))
+        out.append((window(other, rng.uniform(0.0, XS[-1]), y=40.0), set()))
+    return out
+
+
+def test_a_calibration_fitted_on_labelled_queries_matches_their_frequency(walk_map):
+    m = fresh(walk_map)
+    cal = calibrate_on_queries(m, _labelled_queries(m, 0, 40), seed=1)
+    ff = cal.fitted_for
+    assert ff["labelled"] and ff["samples"] == 80 and 0 < ff["right"] < 80 and m.meta["calibration"] == cal.to_dict()
+    # held-out queries of the same kind: the confidence is their frequency of being right
+    loc = Localizer(m)
+    assert loc.calibration == cal
+    held = [(loc.localize(img), right) for img, right in _labelled_queries(m, 1, 40)]
+    conf = np.array([r.confidence for r, _ in held])
+    ok = np.array([r.node in right for r, right in held])
+    assert abs(conf.mean() - ok.mean()) < 0.1 and conf[ok].mean() > conf[~ok].mean() + 0.5
+
+
+def test_too_few_or_one_sided_labelled_queries_fit_no_calibration(walk_map):
+    m = fresh(walk_map)
+    queries = _labelled_queries(m, 0, 40)
+    with pytest.raises(CalibrationError, match="need at least 30"):
+        calibrate_on_queries(m, queries[:20])
+    with pytest.raises(CalibrationError, match="both right and wrong"):
+        calibrate_on_queries(m, [q for q in queries if not q[1]])  # all wrong: a place not in the map
+    assert "calibration" not in m.meta

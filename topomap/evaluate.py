@@ -18,7 +18,7 @@ import numpy as np
 from topomap.errors import DatasetError
 from topomap.graph import TopoMap
 from topomap.calibration import expected_calibration_error, reliability
-from topomap.groundtruth import GroundTruth
+from topomap.groundtruth import GroundTruth, right_nodes
 from topomap.localize import Localization
 
 __all__ = ["QueryOutcome", "EvalResult", "evaluate", "pr_curve", "plot_pr"]
@@ -97,19 +97,10 @@ def evaluate(results: Sequence[tuple[str, Localization]], truth: GroundTruth, tm
         raise DatasetError(
             f"the ground truth names none of the queries (e.g. {', '.join(q for q, _ in results[:3])}); is it the right file?"
         )
-    node_frames: dict[int, set[str]] = {n: set() for n in tmap.nodes}
-    for f in tmap.frames:
-        if f.node is not None:
-            node_frames[f.node].add(f.source)
-    # a node of another experience joined to a right node shows the same place (TopoMap.place_ids)
-    place = tmap.place_ids()
-    members: dict[int, set[int]] = {}
-    for n, p in place.items():
-        members.setdefault(p, set()).add(n)
+    good_of = right_nodes(truth, tmap)  # a node of another experience joined to a right one counts too
     outcomes = []
     for q, loc in results:
-        good = truth.correct_nodes(q, node_frames) if q in truth else set()
-        good = good.union(*(members[place[n]] for n in good))
+        good = good_of(q)
         ranks = [i + 1 for i, c in enumerate(loc.candidates) if c.node in good]  # candidates[0] is the answer
         outcomes.append(QueryOutcome(q, loc.node, float(loc.confidence), loc.status.value, loc.node in good,
                                      ranks[0] if ranks else 0, bool(good)))

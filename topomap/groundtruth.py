@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import csv
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -21,7 +22,7 @@ import numpy as np
 
 from topomap.errors import DatasetError
 
-__all__ = ["PoseTable", "read_poses", "GroundTruth", "read_correspondences", "same_name", "from_poses"]
+__all__ = ["PoseTable", "read_poses", "GroundTruth", "read_correspondences", "same_name", "from_poses", "right_nodes"]
 
 
 def _rows(path: Path) -> list[dict[str, str]]:
@@ -114,6 +115,26 @@ class GroundTruth:
         """Nodes representing at least one matching frame (``node_frames``: node -> frame names)."""
         want = self.matches.get(query, frozenset())
         return {n for n, frames in node_frames.items() if frames & want}
+
+
+def right_nodes(truth: GroundTruth, tmap) -> Callable[[str], set[int]]:
+    """Query name -> the map nodes that are right for it: those representing a matching frame, with
+    the nodes of other experiences joined to them (one place, :meth:`TopoMap.place_ids`); empty for
+    a query ``truth`` does not list (a place not in the map)."""
+    node_frames: dict[int, set[str]] = {n: set() for n in tmap.nodes}
+    for f in tmap.frames:
+        if f.node is not None and f.node in node_frames:
+            node_frames[f.node].add(f.source)
+    place = tmap.place_ids()
+    members: dict[int, set[int]] = {}
+    for n, p in place.items():
+        members.setdefault(p, set()).add(n)
+
+    def of(query: str) -> set[int]:
+        good = truth.correct_nodes(query, node_frames) if query in truth else set()
+        return good.union(*(members[place[n]] for n in good if n in place))
+
+    return of
 
 
 def _map_frames(tmap) -> list:

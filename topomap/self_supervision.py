@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Collection, Iterable
 from dataclasses import dataclass
 
 import cv2
@@ -46,7 +47,7 @@ from topomap.localize import Localizer
 from topomap.parallel import Executor, worker_local
 from topomap.photometric import apply_photometric, random_photometric
 
-__all__ = ["calibrate_map", "CalibrationSamples", "single_samples", "keyframe_samples", "keyframe_rng", "keyframe_image",
+__all__ = ["calibrate_map", "calibrate_on_queries", "CalibrationSamples", "single_samples", "keyframe_samples", "keyframe_rng", "keyframe_image",
            "viewpoint_change", "experience_labels", "experience_queries", "experience_sample"]
 
 log = logging.getLogger(__name__)
@@ -333,13 +334,7 @@ def calibrate_map(tmap: TopoMap, *, queries: int = 60, seed: int = 0, config: Lo
     to learn from.
     """
     cfg = dataclasses.replace(config or LocalizeConfig(), use_calibration=False)
-    rng = np.random.default_rng(seed)
-    with_images = [n for n in sorted(tmap.nodes) if keyframe_image_stored(tmap, n)]
-    if len(with_images) < 10:
-        raise CalibrationError(f"{NOT_CALIBRATED}: the map needs at least 10 keyframe images to calibrate "
-                           f"(it has {len(with_images)}; maps built with --no-images cannot be calibrated)")
-    chosen = sorted(rng.choice(with_images, min(queries, len(with_images)), replace=False).tolist())
-    reference = quality_reference([image_quality(keyframe_image(tmap, n)) for n in chosen])
+    chosen, reference = _keyframe_reference(tmap, queries, seed)
     experience = experience_queries(tmap, queries, seed)
     if executor is not None and executor.workers > 1:
         # the workers build the localizers: one here as well would hold a second index of the map
@@ -362,5 +357,52 @@ def calibrate_map(tmap: TopoMap, *, queries: int = 60, seed: int = 0, config: Lo
                   "right": int(single.y.sum()), "seed": seed,
                   "experience_samples": int(other.sum()), "experience_right": int(single.y[other].sum())}
     cal = Calibration(single_model, reference, fitted_for)
+    tmap.meta[CALIBRATION_KEY] = cal.to_dict()
+    return cal
+
+
+def _keyframe_reference(tmap: TopoMap, queries: int, seed: int) -> tuple[list[int], dict]:
+    """``queries`` keyframes with images (a seeded sample) and their median image quality, the
+    reference a query's quality is judged against."""
+    rng = np.random.default_rng(seed)
+    with_images = [n for n in sorted(tmap.nodes) if keyframe_image_stored(tmap, n)]
+    if len(with_images) < 10:
+        raise CalibrationError(f"{NOT_CALIBRATED}: the map needs at least 10 keyframe images to calibrate "
+                           f"(it has {len(with_images)}; maps built with --no-images cannot be calibrated)")
+    chosen = sorted(rng.choice(with_images, min(queries, len(with_images)), replace=False).tolist())
+    return chosen, quality_reference([image_quality(keyframe_image(tmap, n)) for n in chosen])
+
+
+#: Labelled queries needed to fit a calibration on them (six weights and an intercept).
+MIN_LABELLED = 30
+
+
+def calibrate_on_queries(tmap: TopoMap, queries: Iterable[tuple[np.ndarray, Collection[int]]], *, seed: int = 0,
+                         config: LocalizeConfig | None = None) -> Calibration:
+    """Fit the map's calibration on **labelled queries** instead of its own views, and store it in
+    ``tmap.meta``: ``queries`` yields (image, the node ids that are right for it; empty: a place not
+    in the map), e.g. a validation traversal with ground truth (``topomap index MAP --calibrate-on
+    QUERIES --ground-truth GT``).
+
+    Self-supervision cannot know how hard the next traversal will be (its right answers are easier
+    than a real traversal's: the calibration is cautious); a traversal with ground truth shows it.
+    Each query is localized as a single frame with raw confidences, and its evidence, right when the
+    answer is among its right nodes, is a sample. Needs :data:`MIN_LABELLED` queries with both right
+    and wrong answers among them (raises :class:`CalibrationError`)."""
+    cfg = dataclasses.replace(config or LocalizeConfig(), use_calibration=False)
+    loc = Localizer(tmap, cfg)
+    # the keyframes' quality: the map's stored reference, else measured on its keyframe images
+    reference = loc.quality_reference = loc.quality_reference or _keyframe_reference(tmap, 60, seed)[1]
+    samples = CalibrationSamples(SINGLE_FEATURES)
+    for image, right in queries:
+        r = loc.localize(image)
+        samples.add(r.evidence, r.node in set(right), "labelled")
+    n, k = len(samples), int(samples.y.sum()) if len(samples) else 0
+    if n < MIN_LABELLED or k in (0, n):
+        raise CalibrationError(f"{NOT_CALIBRATED}: {n} labelled queries, {k} of them answered right; need at "
+                               f"least {MIN_LABELLED} with both right and wrong answers")
+    fitted_for = {"nodes": len(tmap.nodes), "descriptor": loc.mode, "samples": n, "right": k, "seed": seed,
+                  "labelled": True}
+    cal = Calibration(Calibrator.fit(SINGLE_FEATURES, samples.x, samples.y), reference, fitted_for)
     tmap.meta[CALIBRATION_KEY] = cal.to_dict()
     return cal
