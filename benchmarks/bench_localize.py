@@ -38,7 +38,9 @@ and the expected calibration error (ECE) of the confidences (the maps are calibr
 ``build_map``). Then, unless ``--no-conditions``: the appearance-change suite (each preset of
 :mod:`topomap.photometric` applied to the queries, seeded per query; both modes; recall relative to
 the unchanged queries), and foreign sequences (castle and Nordland against the corridor map, the
-corridor against the Nordland map), where nothing may be declared.
+corridor against the Nordland map), where nothing may be declared. Per dataset, the calibration
+fitted on labelled queries (``topomap index --calibrate-on``): two folds, fitted on one half of the
+queries and scored on the other, beside the self-supervised calibration on the same half.
 
 Run: ``python benchmarks/bench_localize.py [--dataset corridor|nordland|all] [--no-exhaustive-480]``
 (about 5 min on 2 cores, most of it the exhaustive baselines with more features: 2 x 12321 image pairs;
