@@ -448,18 +448,3 @@ def test_corridor_ref(corridor):
     # keyframe 15 (node 4) represents ref 14, one frame from it, not keyframe 12 two frames back
     assert {f.id: f.node for f in m.frames} == nearest_keyframes(m)
     assert m.node_of_frame("0000014.jpg") == m.node_of_frame("0000015.jpg") != m.node_of_frame("0000013.jpg")
-
-
-def test_the_map_in_memory_is_the_map_its_file_holds(tmp_path):
-    # JPEG thumbnails are lossy: a build that kept the pixels it encoded localized (thumbnail cue) and
-    # described (HOG) its nodes otherwise than the same map loaded from its file or re-indexed
-    from topomap.build import index_global_descriptors
-    from topomap.store import load_map, save_map
-
-    write_sequence(tmp_path / "walk", [window(scene(2, width=3000), x, y=40.0) for x in np.arange(0.0, 1500.0, 100.0)])
-    built = build_map(tmp_path / "walk", dataclasses.replace(FAST, image_format="jpeg", thumbnail_quality=50))
-    loaded = load_map(save_map(built, tmp_path / "m.topomap"))
-    assert all(np.array_equal(built.nodes[n].thumbnail, loaded.nodes[n].thumbnail) for n in built.nodes)
-    hog = built.arrays["global_matrix"].copy()
-    index_global_descriptors(loaded)
-    assert np.array_equal(loaded.arrays["global_matrix"], hog)

@@ -47,7 +47,7 @@ from topomap.config import BuildConfig, FeatureConfig, MatchConfig
 from topomap.errors import CalibrationError, ClusterError, ConfigError, DatasetError
 from topomap.features import Features, detector, extract
 from topomap.graph import Edge, EdgeKind, FrameRecord, Node, TopoMap
-from topomap.images import ImageSequence, decode_image, open_sequence, read_image, to_working_resolution, working_size
+from topomap.images import ImageSequence, open_sequence, read_image, to_working_resolution, working_size
 from topomap.matching import Verification, verify
 from topomap.parallel import Executor, InlineExecutor
 from topomap.calibration import CALIBRATION_KEY, Calibration
@@ -403,20 +403,15 @@ def build_map(
     def new_node(c: _Candidate, prev_node: int | None, link: Verification | None) -> int:
         nid = tmap.next_node_id()
         rec = tmap.frames[c.record]
-        from topomap.store import encode_image
-
         image_data = None
         if config.store_images:
+            from topomap.store import encode_image
+
             image_data = encode_image(c.image, config.image_format, config.image_quality)
-        # the thumbnail as the file holds it (JPEG is lossy): the map in memory scores like the map
-        # loaded from its file, and its HOG descriptors are those `topomap index` recomputes
-        thumbnail_data = encode_image(make_thumbnail(c.image, config.thumbnail_px), config.image_format,
-                                      config.thumbnail_quality)
         tmap.add_node(
             Node(
                 id=nid, sequence=sequence_id, frame_id=rec.id, source=rec.source, features=c.features,
-                thumbnail=decode_image(thumbnail_data, what="a thumbnail"), image_data=image_data,
-                thumbnail_data=thumbnail_data,
+                thumbnail=make_thumbnail(c.image, config.thumbnail_px), image_data=image_data,
                 descriptor=thumbnail_descriptor(c.image, descriptor_size(*work_size), DESCRIPTOR_PATCH),
             )
         )

@@ -55,8 +55,7 @@ class Node:
     ``thumbnail``: (h, w) uint8; ``image``: (H, W) uint8 keyframe at the working resolution, or
     ``None`` when not stored; ``descriptor``: (D,) float32 whole-image descriptor or ``None``;
     ``image_data``: the keyframe image already encoded as the map stores it (JPEG/PNG bytes: a build
-    keeps these rather than pixels, 5-10x less memory) or ``None``; ``thumbnail_data``: the
-    thumbnail so encoded, ``thumbnail`` its decoded pixels (a map in memory is the map its file holds);
+    keeps these rather than pixels, 5-10x less memory) or ``None``;
     ``pose_gt``: ground-truth pose, used only for plots and scoring — never by localization or
     navigation.
     """
@@ -71,7 +70,6 @@ class Node:
     descriptor: np.ndarray | None = None
     pose_gt: tuple[float, ...] | None = None
     image_data: bytes | None = None
-    thumbnail_data: bytes | None = None
 
 
 @dataclass(frozen=True)

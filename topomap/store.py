@@ -387,9 +387,9 @@ def encode_image(img: np.ndarray, fmt: str = "png", quality: int = 90) -> bytes:
 
 
 def _node_images(n: Node, cfg: BuildConfig) -> tuple[bytes, bytes | None]:
-    """The thumbnail and keyframe image bytes of a node in the map's format (as the build encoded
-    them, if it did)."""
-    thumb = n.thumbnail_data if n.thumbnail_data is not None else encode_image(n.thumbnail, cfg.image_format, cfg.thumbnail_quality)
+    """The thumbnail and keyframe image bytes of a node in the map's format (the keyframe image as
+    the build encoded it, if it did)."""
+    thumb = encode_image(n.thumbnail, cfg.image_format, cfg.thumbnail_quality)
     image = getattr(n, "image_data", None)
     if image is None and n.image is not None:
         image = encode_image(n.image, cfg.image_format, cfg.image_quality)
