@@ -64,7 +64,7 @@ import numpy as np
 from topomap.build import build_map
 from topomap.evaluate import evaluate, pr_curve
 from topomap.features import extract
-from topomap.groundtruth import read_correspondences, same_name
+from topomap.groundtruth import read_correspondences, right_nodes, same_name
 from topomap.images import open_sequence, to_working_resolution
 from topomap.config import LocalizeConfig
 from topomap.images import to_gray_u8
@@ -298,11 +298,8 @@ def corridor(tmp: Path, with_480: bool):
     for f in m.frames:
         node_of_ref[ref_pos[f.source]] = f.node
     good_frames = [{ref_pos[s] for s in truth.matches.get(n, ())} for n in q_names]
-    node_frames: dict[int, set[str]] = {n: set() for n in m.nodes}
-    for f in m.frames:
-        if f.node is not None:
-            node_frames[f.node].add(f.source)
-    good_nodes = [truth.correct_nodes(n, node_frames) for n in q_names]
+    good_of = right_nodes(truth, m)
+    good_nodes = [good_of(n) for n in q_names]
     near = near_rate(m, ref_pos, good_frames)
     print(f"corridor: {len(ref_imgs)} reference frames -> {len(m.nodes)} nodes (build {build_s:.1f} s), "
           f"{len(q_imgs)} queries")
@@ -433,7 +430,6 @@ def labelled_folds(name: str, m, names, images, truth) -> None:
     """``topomap index --calibrate-on``: the calibration fitted on labelled queries, two folds (fit on
     one half of the queries, scored on the other), against the map's self-supervised calibration on
     the same half; single frames (the sequence confidence is the filter's posterior, not refitted)."""
-    from topomap.groundtruth import right_nodes
     from topomap.self_supervision import calibrate_on_queries
 
     half = len(names) // 2

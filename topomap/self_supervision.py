@@ -392,12 +392,13 @@ def calibrate_on_queries(tmap: TopoMap, queries: Iterable[tuple[np.ndarray, Coll
     cfg = dataclasses.replace(config or LocalizeConfig(), use_calibration=False)
     loc = Localizer(tmap, cfg)
     # the keyframes' quality: the map's stored reference, else measured on its keyframe images
-    reference = loc.quality_reference = loc.quality_reference or _keyframe_reference(tmap, 60, seed)[1]
+    reference = loc.quality_reference = (loc.quality_reference
+                                         or _keyframe_reference(tmap, tmap.config.calibration.queries, seed)[1])
     samples = CalibrationSamples(SINGLE_FEATURES)
     for image, right in queries:
         r = loc.localize(image)
         samples.add(r.evidence, r.node in set(right), "labelled")
-    n, k = len(samples), int(samples.y.sum()) if len(samples) else 0
+    n, k = len(samples), int(samples.y.sum())
     if n < MIN_LABELLED or k in (0, n):
         raise CalibrationError(f"{NOT_CALIBRATED}: {n} labelled queries, {k} of them answered right; need at "
                                f"least {MIN_LABELLED} with both right and wrong answers")
