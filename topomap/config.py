@@ -286,6 +286,7 @@ class LocalizeConfig:
     # after the camera leaves the map the belief of the frames before would carry over (one frame
     # of another place declared at 0.91, measured: docs/localization.md)
     declare_min_frame_ratio: float = 1.2
+    follow_on_keypoint_maps: bool = False
     leave_probability: float = 0.02  # per frame, from the map to elsewhere
     enter_probability: float = 0.02  # per frame, from elsewhere back into the map
     # Degraded frames (night, noise, exposure): each node's score is also compared with its own
@@ -293,6 +294,10 @@ class LocalizeConfig:
     # node that matches every frame, e.g. a dark keyframe at night, says nothing about where the
     # camera is — weighted by how degraded the frame is (0 on a frame like the map's). 0 = off.
     recent_frames: int = 20
+    # ... and on clean frames too by this much: a node that scores high against every frame (the
+    # corridor's far end, seen from half its length) held a standing-still belief while the camera
+    # walked 10 frames away from it (docs/localization.md)
+    recent_min_weight: float = 0.4
     recent_min_spread: float = 0.5  # [z-units] a node's scores varying less than this: the same view
 
     def __post_init__(self) -> None:
@@ -313,6 +318,8 @@ class LocalizeConfig:
                 raise ConfigError(f"{name} must lie in [0, 1)")
         if not 1.0 <= self.declare_min_frame_ratio <= self.max_frame_ratio:
             raise ConfigError("declare_min_frame_ratio must lie in [1, max_frame_ratio]")
+        if not 0.0 <= self.recent_min_weight <= 1.0:
+            raise ConfigError(f"recent_min_weight={self.recent_min_weight} must lie in [0, 1]")
         if self.elsewhere_min_inliers < 0 or self.declare_min_inliers < 0:
             raise ConfigError("elsewhere_min_inliers and declare_min_inliers must be >= 0")
         if not 0.0 < self.verified_elsewhere < self.verified_in_map < 1.0:

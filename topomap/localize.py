@@ -579,7 +579,12 @@ class RecentScores:
         """``score`` blended with its :meth:`contrast` by ``weight`` in [0, 1]; the frame then joins
         the history."""
         c = self.contrast(score) if weight > 0 else None
-        out = score if c is None else (1.0 - weight) * score + weight * c
+        if c is None:
+            out = score
+        else:
+            # a blend of two unit-spread scores spreads less than either: rescaled, it keeps the
+            # likelihood's sharpness (flattening a degraded frame is beta's job, not the blend's)
+            out = ((1.0 - weight) * score + weight * c) / math.hypot(1.0 - weight, weight)
         self.push(score)
         return out
 
@@ -681,7 +686,8 @@ class SequenceLocalizer:
         # contrast but loses the texture of its bright half; docs/localization.md has the figures)
         reliability = 1.0 - loc.degradation(q)
         # ... and the more degraded, the more each node is judged against its own recent scores
-        obs = self._recent.debias(score, 1.0 - reliability)  # score itself, or a new array
+        # (and at least by recent_min_weight: a node that matches every frame says little on a clean one too)
+        obs = self._recent.debias(score, max(cfg.recent_min_weight, 1.0 - reliability))  # score itself, or a new array
         if len(ex):
             score[ex] = -np.inf
             obs[ex] = -np.inf
@@ -695,12 +701,13 @@ class SequenceLocalizer:
             checks.update(loc.verify_rows(q, [best]))
         # ... and evidence that differs between mapped and unmapped frames tells the map from elsewhere
         ratio = None  # P(frame | in the map, the frames before) / P(frame | elsewhere)
+        # a camera in the map sees next what the motion model predicts; elsewhere its frames
+        # resemble a random place. The Bayes factor of the two is the prior-weighted likelihood over
+        # the mean likelihood (1 when the prior says nothing)
+        followed = float(np.clip(prior.sum(axis=1) @ lik / max(lik.mean(), 1e-300), 1.0 / cfg.max_frame_ratio,
+                                 cfg.max_frame_ratio))
         if not loc.use_bow:
-            # appearance-only maps: a camera in the map sees next what the motion model predicts;
-            # elsewhere its frames resemble a random place. The Bayes factor of the two is the
-            # prior-weighted likelihood over the mean likelihood (1 when the prior says nothing)
-            ratio = float(np.clip(prior.sum(axis=1) @ lik / max(lik.mean(), 1e-300), 1.0 / cfg.max_frame_ratio,
-                                  cfg.max_frame_ratio))
+            ratio = followed
         elif len(q.features) >= MIN_FEATURES_FOR_BOW and best in checks:
             v = checks[best]
             r_in, r_out = cfg.verified_in_map, cfg.verified_elsewhere
@@ -708,6 +715,8 @@ class SequenceLocalizer:
                 ratio = (1.0 - r_in) / (1.0 - r_out)
             elif v.inliers >= cfg.elsewhere_min_inliers:
                 ratio = r_in / r_out
+            elif cfg.follow_on_keypoint_maps:
+                ratio = followed
             # else: a verification at the level chance alignments of a look-alike place reach says nothing
         if self._tells_elsewhere and ratio is not None:
             e = e / (e + (1.0 - e) * ratio)
