@@ -460,6 +460,37 @@ def test_recent_scores_leave_clean_and_early_frames_alone():
     assert not np.array_equal(recent.debias(s, 0.5), s)
 
 
+def test_recent_scores_blend_does_not_flatten_the_scores():
+    """Blending a frame's scores with their contrast must not flatten the filter's likelihood by
+    itself (beta does that, by the frame's degradation): a blend that spreads less than the score
+    is stretched back to the score's spread."""
+    from topomap.localize import _robust_scale
+
+    rng = np.random.default_rng(3)
+    recent = _recent()
+    for _ in range(20):
+        recent.push(rng.normal(size=5000))
+    now = 2.0 * rng.normal(size=5000)  # the corridor's scores spread about 2 z-units, the contrast 1
+    for w in (0.3, 0.5, 0.8):
+        assert abs(_robust_scale(recent.debias(now, w)) / _robust_scale(now) - 1.0) < 0.05, w
+
+
+@pytest.mark.slow
+def test_corridor_reversed_is_not_held_at_the_node_every_frame_matches(corridor):
+    """The corridor's queries in reverse start at the map's far end, whose keyframe (the end wall)
+    scores high against half the corridor: without the contrast along time on clean frames a
+    standing-still belief on it outlasted ten frames of walking away (top-1 0.730; with it 0.811)."""
+    truth = read_correspondences(dataset("corridor") / "ground_truth.csv", corridor.map)
+    top1 = {}
+    for w in (0.0, LocalizeConfig().recent_min_weight):
+        filt = SequenceLocalizer(Localizer(corridor.map, LocalizeConfig(recent_min_weight=w)))
+        res = evaluate([(n, filt.update_query(q)) for n, q in zip(corridor.names[::-1], corridor.queries[::-1])],
+                       truth, corridor.map)
+        top1[w] = res.recall_at[1]
+        assert res.declared_precision >= 0.9, (w, res.declared_precision)
+    assert top1[LocalizeConfig().recent_min_weight] >= 0.77 and top1[0.0] <= 0.75, top1
+
+
 def test_recent_scores_keep_only_the_last_frames():
     rng = np.random.default_rng(2)
     recent, frames = _recent(5), [rng.normal(size=30) for _ in range(12)]

@@ -286,7 +286,6 @@ class LocalizeConfig:
     # after the camera leaves the map the belief of the frames before would carry over (one frame
     # of another place declared at 0.91, measured: docs/localization.md)
     declare_min_frame_ratio: float = 1.2
-    follow_on_keypoint_maps: bool = False
     leave_probability: float = 0.02  # per frame, from the map to elsewhere
     enter_probability: float = 0.02  # per frame, from elsewhere back into the map
     # Degraded frames (night, noise, exposure): each node's score is also compared with its own

@@ -582,9 +582,13 @@ class RecentScores:
         if c is None:
             out = score
         else:
-            # a blend of two unit-spread scores spreads less than either: rescaled, it keeps the
-            # likelihood's sharpness (flattening a degraded frame is beta's job, not the blend's)
-            out = ((1.0 - weight) * score + weight * c) / math.hypot(1.0 - weight, weight)
+            # a blend of two partly correlated scores can spread less than either: it is stretched
+            # back to the score's own spread, so that it does not flatten the likelihood (flattening
+            # a degraded frame is beta's job, not the blend's)
+            out = (1.0 - weight) * score + weight * c
+            fin = np.isfinite(out)
+            if fin.sum() > 2:
+                out = out * max(1.0, _robust_scale(score[fin]) / _robust_scale(out[fin]))
         self.push(score)
         return out
 
@@ -701,13 +705,12 @@ class SequenceLocalizer:
             checks.update(loc.verify_rows(q, [best]))
         # ... and evidence that differs between mapped and unmapped frames tells the map from elsewhere
         ratio = None  # P(frame | in the map, the frames before) / P(frame | elsewhere)
-        # a camera in the map sees next what the motion model predicts; elsewhere its frames
-        # resemble a random place. The Bayes factor of the two is the prior-weighted likelihood over
-        # the mean likelihood (1 when the prior says nothing)
-        followed = float(np.clip(prior.sum(axis=1) @ lik / max(lik.mean(), 1e-300), 1.0 / cfg.max_frame_ratio,
-                                 cfg.max_frame_ratio))
         if not loc.use_bow:
-            ratio = followed
+            # appearance-only maps: a camera in the map sees next what the motion model predicts;
+            # elsewhere its frames resemble a random place. The Bayes factor of the two is the
+            # prior-weighted likelihood over the mean likelihood (1 when the prior says nothing)
+            ratio = float(np.clip(prior.sum(axis=1) @ lik / max(lik.mean(), 1e-300), 1.0 / cfg.max_frame_ratio,
+                                  cfg.max_frame_ratio))
         elif len(q.features) >= MIN_FEATURES_FOR_BOW and best in checks:
             v = checks[best]
             r_in, r_out = cfg.verified_in_map, cfg.verified_elsewhere
@@ -715,8 +718,6 @@ class SequenceLocalizer:
                 ratio = (1.0 - r_in) / (1.0 - r_out)
             elif v.inliers >= cfg.elsewhere_min_inliers:
                 ratio = r_in / r_out
-            elif cfg.follow_on_keypoint_maps:
-                ratio = followed
             # else: a verification at the level chance alignments of a look-alike place reach says nothing
         if self._tells_elsewhere and ratio is not None:
             e = e / (e + (1.0 - e) * ratio)
