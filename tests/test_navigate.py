@@ -224,6 +224,62 @@ def test_stalled_at_goal_windows():
     assert not stalled(stuck[:150], patient=True)  # 15 s: not patient enough yet
 
 
+def test_a_goal_not_approached_in_its_window_counts_as_stuck():
+    """The final goal's no-progress window: a constant estimate is stuck, near or far; an approach or
+    a window not yet full is not."""
+    from topomap.config import NavigateConfig
+    from topomap.navigate import _Settle
+
+    cfg = NavigateConfig()
+    rng = np.random.default_rng(1)
+    t = np.arange(0.0, cfg.goal_no_progress_s + 5.0, cfg.control_period_s)
+
+    def stuck(dist, noise=0.03):
+        settle = _Settle(cfg)
+        settle.history = [(ti, d + rng.normal(0, noise), 0.0, math.nan) for ti, d in zip(t, dist)]
+        return settle.not_approaching(cfg.goal_no_progress_s, cfg.goal_no_progress_m)
+
+    assert cfg.goal_no_progress_s > cfg.settle_patience_s  # a stall within reach is the patient settle's first
+    assert stuck(np.full(len(t), 1.3))  # pushing against a wall 1.3 m out
+    assert stuck(np.full(len(t), 0.15))  # stalled near, and the image never agreed
+    assert not stuck(np.linspace(1.5, 1.0, len(t)))  # slow, but approaching
+    assert not stuck(np.full(len(t) // 2, 1.3))  # not watched long enough
+    assert not stuck([])  # a fresh window: after the floor refused an arrival
+
+
+def test_a_final_goal_servo_that_makes_no_progress_re_plans(taught):
+    """A robot that cannot move (frozen at a keyframe, facing the view of the goal one node on):
+    the goal servo's estimate never comes closer, and after goal_no_progress_s the navigator marks
+    the goal unreachable from here and recovers, instead of pushing until its budget ends."""
+    from topomap.config import NavigateConfig
+
+    m, world, poses, _ = taught
+    ids = sorted(m.nodes)
+    here, goal = ids[len(ids) // 3], ids[len(ids) // 3 + 1]
+    with Simulator(world, vehicle="omni", disturbance="none", seed=3, start_pose=goal_pose(m, poses, here)) as sim:
+        frozen = sim.robot.render()
+        camera = sim.robot.camera
+
+    class Stuck:
+        def __init__(self):
+            self.camera = camera
+
+        def render(self):
+            return frozen
+
+        def apply(self, command, dt):
+            pass
+
+    cfg = NavigateConfig(goal_no_progress_s=10.0, time_budget_base_s=40.0, time_budget_s_per_hop=1.0, max_replans=1)
+    nav = Navigator(m, Stuck(), "omni", config=cfg)
+    events = list(nav.run(goal, start_node=here))
+    stuck = [e for e in events if e.kind is EventKind.LOST and f"could not reach subgoal {goal}" in e.message]
+    assert stuck, [e.message for e in events if e.kind is not EventKind.STEP][:10]
+    steps = [e.time_s for e in events if e.kind is EventKind.STEP and e.subgoal == goal]
+    assert stuck[0].time_s - steps[0] < cfg.goal_no_progress_s + 5.0
+    assert nav.outcome.status is not NavStatus.ARRIVED
+
+
 def test_settle_needs_the_image_to_agree():
     """Converged steps count only while the image agrees; the servo believing it arrived while the
     image disagrees counts as a false arrival (a look-alike place)."""

@@ -669,6 +669,12 @@ class NavigateConfig:
     settle_patience_image_error: float = 0.06
     lost_after_steps: int = 15  # steps without usable geometry before re-localizing
     subgoal_timeout_s: float = 40.0  # a subgoal not reached in this time marks its edge as failed
+    # The final goal has no such deadline (settling takes what it takes), but a goal servo whose
+    # estimated distance came less than goal_no_progress_m closer over goal_no_progress_s without
+    # settling is stuck (a wall in the way, a wrong re-localization, a stall the image refuses):
+    # re-localize and re-plan as for a lost subgoal instead of pushing until the budget ends.
+    goal_no_progress_s: float = 40.0
+    goal_no_progress_m: float = 0.05
     # Re-plans that extend the time budget (to the new route's); after them the budget is fixed.
     max_replans: int = 8
     # Never give up while more than this fraction of the time budget is left (and a route exists):
@@ -709,7 +715,7 @@ class NavigateConfig:
 
     def __post_init__(self) -> None:
         for name in ("control_period_s", "switch_distance_m", "switch_heading_deg", "settle_heading_deg", "subgoal_timeout_s", "scan_turn_rps", "scan_every_s",
-                     "start_confirm_every_s",
+                     "start_confirm_every_s", "goal_no_progress_s", "goal_no_progress_m",
                      "time_budget_base_s", "time_budget_s_per_hop"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"navigate {name} must be positive")

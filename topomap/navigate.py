@@ -257,6 +257,26 @@ class _Settle:
             return None
         return float(np.median(rows[ok, 1] / rows[ok, 0])) * scale_m
 
+    def not_approaching(self, window_s: float, progress_m: float) -> bool:
+        """Over the last ``window_s`` the estimated distance came less than ``progress_m`` closer
+        (medians of the window's first and last quarters) and did not settle: a final goal servo
+        pushing against a wall, or toward a place the image never agrees is the goal (longer than
+        ``settle_patience_s``, the patient settle has had its chance to take a stall within reach)."""
+        history = self.history
+        if not history:  # a fresh window (the floor refused an arrival and rescaled)
+            return False
+        now = history[-1][0]
+        if now - history[0][0] < window_s:
+            return False
+        dist = np.array([h[1] for h in history if h[0] >= now - window_s])
+        ok = np.isfinite(dist)
+        if ok.mean() < SETTLE_MIN_VALID_FRACTION:
+            return False
+        dist = dist[ok]
+        quarter = max(1, len(dist) // 4)
+        first, last = float(np.median(dist[:quarter])), float(np.median(dist[-quarter:]))
+        return bool(first - last < progress_m)
+
     def stalled(self, max_m: float, window_s: float, progress_m: float) -> bool:
         """Aligned, within ``max_m``, and less than ``progress_m`` of progress over ``window_s``.
 
@@ -630,7 +650,8 @@ class Navigator:
             else:
                 leg.lost = leg.lost + 1 if s.status is ServoStatus.LOST else 0
                 leg.turning = leg.turning if s.status is ServoStatus.LOST else 0
-            stuck = self._time - leg.since_switch_s > cfg.subgoal_timeout_s and not final
+            stuck = (self._time - leg.since_switch_s > cfg.subgoal_timeout_s if not final else
+                     leg.settle.not_approaching(cfg.goal_no_progress_s, cfg.goal_no_progress_m))
             fooled = leg.settle.false_arrival >= cfg.lost_after_steps
             if leg.lost >= cfg.lost_after_steps or stuck or fooled:
                 why = ("lost sight of" if leg.lost >= cfg.lost_after_steps else
