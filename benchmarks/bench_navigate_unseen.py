@@ -23,8 +23,8 @@ Prints success with its 95 % Wilson interval, median / p90 final error, per vehi
 failures counted by kind, derived from the navigator's events and outcome: ``wrong start
 localization`` (the first localization was more than 1.5 m or 60 deg from the true start; the
 ground truth only scores), ``no localization``, ``gave up (lost)`` / ``gave up (fooled)`` /
-``gave up (stuck)`` (recovery given up; the last loss: a subgoal out of sight / a look-alike at the goal / a
-subgoal not reached in time), ``timeout``, ``false arrival`` (the navigator said arrived,
+``gave up (blocked)`` / ``gave up (stuck)`` (recovery given up; the last loss: a subgoal out of sight / a look-alike at the goal /
+the bumper in contact / a subgoal not reached in time), ``timeout``, ``false arrival`` (the navigator said arrived,
 more than 0.25 m or 10 deg off). For a give-up it also reports how much of the time budget was left.
 
 Run: ``python benchmarks/bench_navigate_unseen.py [--episodes 100] [--worlds 100-109] [--jobs 2]
@@ -231,7 +231,7 @@ def failure_kind(row: dict) -> tuple[str | None, str | None]:
         terminal = "no localization"
     elif "gave up" in msg:
         terminal = ("gave up (lost)" if "lost sight" in msg else "gave up (fooled)" if "fooled" in msg
-                    else "gave up (stuck)")
+                    else "gave up (blocked)" if "blocked on the way" in msg else "gave up (stuck)")
     else:
         terminal = "failed (other)"
     wrong = (row.get("start_localization_error_m", 0.0) > WRONG_START_M

@@ -34,7 +34,9 @@ def test_failure_kinds_from_outcome_and_events(bench):
     assert k(_row(message="gave up after 8 re-plans (was fooled by a look-alike of subgoal 3)"))[0] == "gave up (fooled)"
     assert k(_row(message="gave up after 8 re-plans (could not reach subgoal 9)"))[0] == "gave up (stuck)"
     tried = "; tried: backed off 12 s toward nodes that verified well, turned 720 deg in place searching, re-localized 9 times (1 far); 80 s of 340 s left)"
-    for why, kind in (("lost sight of", "lost"), ("was fooled by a look-alike of", "fooled"), ("could not reach", "stuck")):
+    tried = tried.replace("; 80 s", ", reversed out of contact 2 times, ended 1 back-offs at contact; 80 s")
+    for why, kind in (("lost sight of", "lost"), ("was fooled by a look-alike of", "fooled"), ("could not reach", "stuck"),
+                      ("was blocked on the way to", "blocked")):
         assert k(_row(message=f"gave up after 9 re-plans ({why} subgoal 9{tried}"))[0] == f"gave up ({kind})"
     wrong = _row(message="gave up after 8 re-plans (lost sight of subgoal 86)", start_localization_error_m=11.0)
     assert k(wrong) == ("wrong start localization", "gave up (lost)")

@@ -675,3 +675,109 @@ def test_recover_scale_tolerance_is_a_factor():
 
     with pytest.raises(ConfigError, match="recover_scale_tolerance"):
         NavigateConfig(recover_scale_tolerance=0.9)
+
+
+# ---------------------------------------------------------------------- drift while searching, the bumper
+def test_the_search_turn_cancels_the_estimated_drift_not_only_the_yaw():
+    """Turning in place under a forward/sideways drift the servo has estimated, the search turn sends
+    the hold's translation with the turn (a constant body-frame bias does not stop while turning)."""
+    from topomap.motion import vehicle_kind
+    from topomap.servo.disturbance import DisturbanceEstimate
+
+    for vehicle in ("omni", "unicycle"):
+        nav, robot = _blind_navigator()
+        nav.vehicle = nav.servo.vehicle = vehicle_kind(vehicle)
+        nav._estimate = DisturbanceEstimate(d_omega=0.1, d_omega_std=0.01, kappa=1.0, mu_f=0.03, mu_h=-0.02)
+        hold = nav.servo.hold_command(nav._estimate)
+        assert hold.v_f == pytest.approx(-0.03) and abs(hold.v_h) == pytest.approx(0.02 if vehicle == "omni" else 0.0)
+        nav._scan_step()
+        assert robot.commands, "the scan step sent no command"
+        for c in robot.commands:
+            assert c.v_f == pytest.approx(hold.v_f) and c.v_h == pytest.approx(hold.v_h)
+            assert c.omega == pytest.approx(nav.config.scan_turn_rps - 0.1)
+
+
+def _frozen_robot(taught, node, contact):
+    """A robot frozen at ``node``'s keyframe pose whose bumper reports ``contact`` on every step."""
+    from topomap.sim.simulator import StepReport
+
+    m, world, poses, _ = taught
+    with Simulator(world, vehicle="omni", disturbance="none", seed=3, start_pose=goal_pose(m, poses, node)) as sim:
+        frozen, camera = sim.robot.render(), sim.robot.camera
+
+    class Frozen:
+        def __init__(self):
+            self.camera = camera
+            self.steps = 0
+
+        def render(self):
+            return frozen
+
+        def apply(self, command, dt):
+            self.steps += 1
+            return StepReport(contact, False, self.steps * dt, dt)
+
+    return Frozen()
+
+
+@pytest.mark.parametrize("contact", [False, True])
+def test_no_arrival_is_taken_while_the_bumper_reports_contact(taught, contact):
+    """At the goal's own view the navigator arrives; the same view with the bumper in contact is
+    a robot pressed against a wall (keyframes were taken clear of walls): it is blocked, re-plans,
+    and never says arrived."""
+    from topomap.config import NavigateConfig
+
+    m, _, _, _ = taught
+    goal = sorted(m.nodes)[len(m.nodes) // 3]
+    cfg = NavigateConfig(time_budget_base_s=25.0, time_budget_s_per_hop=1.0, max_replans=0)
+    nav = Navigator(m, _frozen_robot(taught, goal, contact), "omni", config=cfg)
+    events = list(nav.run(goal, start_node=goal))
+    lost = [e.message for e in events if e.kind is EventKind.LOST]
+    if not contact:
+        assert nav.outcome.status is NavStatus.ARRIVED and nav.outcome.contact_periods == 0, nav.outcome.message
+        return
+    assert nav.outcome.status is not NavStatus.ARRIVED
+    assert lost and all(f"was blocked on the way to subgoal {goal}" in msg for msg in lost), lost
+    assert nav.outcome.contact_periods > 0
+
+
+def test_a_blocked_servo_re_plans_within_its_contact_window(taught):
+    """Pushing toward the next node with the bumper in contact: blocked after contact_blocked_steps
+    periods of servoing, not after the subgoal's timeout."""
+    from topomap.config import NavigateConfig
+
+    m, _, _, _ = taught
+    ids = sorted(m.nodes)
+    here, goal = ids[len(ids) // 3], ids[len(ids) // 3 + 1]
+    cfg = NavigateConfig(time_budget_base_s=20.0, time_budget_s_per_hop=1.0, max_replans=0)
+    nav = Navigator(m, _frozen_robot(taught, here, True), "omni", config=cfg)
+    events = list(nav.run(goal, start_node=here))
+    steps = [e.time_s for e in events if e.kind is EventKind.STEP]
+    blocked = [e for e in events if e.kind is EventKind.LOST and "blocked" in e.message]
+    assert blocked, [e.message for e in events if e.kind is not EventKind.STEP][:10]
+    assert blocked[0].time_s - steps[0] <= (cfg.contact_blocked_steps + 2) * cfg.control_period_s
+    assert nav._tried.get("blocked by contact", 0) >= 1 and nav.outcome.status is not NavStatus.ARRIVED
+
+
+def test_a_back_off_ends_when_the_bumper_reports_contact():
+    """Backing off along the trail stops at the first blocked period: drift took the robot elsewhere,
+    so the way back is not the way it came."""
+    from topomap.motion import Command
+    from topomap.sim.simulator import StepReport
+
+    nav, robot = _blind_navigator()
+    robot.apply = lambda command, dt: (robot.commands.append(command), StepReport(True, False, 0.0, dt))[1]
+    nav._last_good = 0
+    nav._trail.extend([Command(0.2, 0.0, 0.0)] * 20)
+    driven = nav._back_off()
+    assert driven == pytest.approx(nav.config.control_period_s)
+    assert robot.commands[0].v_f < 0  # it reversed the push first
+    assert "back-offs ended by contact" in nav._tried
+
+
+def test_contact_blocked_steps_must_be_positive():
+    from topomap.config import NavigateConfig
+    from topomap.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="contact_blocked_steps"):
+        NavigateConfig(contact_blocked_steps=0)

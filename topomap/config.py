@@ -668,6 +668,15 @@ class NavigateConfig:
     settle_patience_progress_m: float = 0.02
     settle_patience_image_error: float = 0.06
     lost_after_steps: int = 15  # steps without usable geometry before re-localizing
+    # The robot's bumper (a ``collided`` flag on what its ``apply`` returns) reporting contact this
+    # many periods in a row while servoing: blocked, re-localize and re-plan as for a lost subgoal;
+    # no arrival is taken while in contact. (A unicycle turning while it touches a wall frees itself
+    # once it faces away: the window leaves it a turn of ~45 deg at the servo's turn rate.)
+    contact_blocked_steps: int = 20
+    # ... after reversing the translation it was pushing with for this long [s]: the pushing periods
+    # verified well (right view, wrong place), so the trail the back-off inverts may hold none of
+    # them, and a unicycle needs room ahead to remove the lateral offset that put it against the wall.
+    contact_reverse_s: float = 3.0
     subgoal_timeout_s: float = 40.0  # a subgoal not reached in this time marks its edge as failed
     # The final goal has no such deadline (settling takes what it takes), but a goal servo whose
     # estimated distance came less than goal_no_progress_m closer over goal_no_progress_s without
@@ -715,7 +724,7 @@ class NavigateConfig:
 
     def __post_init__(self) -> None:
         for name in ("control_period_s", "switch_distance_m", "switch_heading_deg", "settle_heading_deg", "subgoal_timeout_s", "scan_turn_rps", "scan_every_s",
-                     "start_confirm_every_s", "goal_no_progress_s", "goal_no_progress_m",
+                     "start_confirm_every_s", "goal_no_progress_s", "goal_no_progress_m", "contact_reverse_s",
                      "time_budget_base_s", "time_budget_s_per_hop"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"navigate {name} must be positive")
@@ -723,8 +732,8 @@ class NavigateConfig:
             raise ConfigError("navigate arrive_descriptor_fraction must lie in (0, 1)")
         if not 0 < self.arrive_image_error < 1:
             raise ConfigError("navigate arrive_image_error must lie in (0, 1) (a fraction of the image width)")
-        if self.settle_steps < 1 or self.lost_after_steps < 1 or self.max_replans < 0:
-            raise ConfigError("settle_steps and lost_after_steps must be >= 1, max_replans >= 0")
+        if self.settle_steps < 1 or self.lost_after_steps < 1 or self.contact_blocked_steps < 1 or self.max_replans < 0:
+            raise ConfigError("settle_steps, lost_after_steps and contact_blocked_steps must be >= 1, max_replans >= 0")
         if not 0 <= self.give_up_budget_fraction < 1 or not 0 <= self.recover_far_confidence <= 1:
             raise ConfigError("navigate give_up_budget_fraction must lie in [0, 1), recover_far_confidence in [0, 1]")
         if not 0 <= self.start_verified_confidence <= 1 or not 0 <= self.arrive_floor_min_fraction <= 1:

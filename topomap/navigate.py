@@ -45,14 +45,23 @@ place stays in view) it verifies again, with a heading that differs by the turn 
 measure between them. Otherwise the scan goes on; after a full turn the
 start fails ("could not localize") rather than guess.
 
+The bumper. A robot whose ``apply`` returns a report with ``collided`` (the simulator's
+:class:`~topomap.sim.simulator.StepReport`; a contact sensor, not a pose) tells the navigator when it
+touched something: no arrival is taken in contact (keyframes were taken clear of walls), and
+``contact_blocked_steps`` periods of contact in a row while servoing are a blocked subgoal — the
+navigator reverses the push for ``contact_reverse_s`` and recovers as below. Robots without the flag
+never report contact.
+
 Recovery (docs/theory.md section 4.4). After ``lost_after_steps`` periods without usable geometry,
-when a subgoal is not reached within ``subgoal_timeout_s`` or a look-alike fooled the goal's settle
-test, the navigator stops and
+when a subgoal is not reached within ``subgoal_timeout_s``, a look-alike fooled the goal's settle
+test or the bumper reports the way blocked, the navigator stops and
 
 1. backs off toward the last node that verified well (at least ``switch_min_inliers`` inliers): it
    drives the inverse of the commands sent since then (at most ``recover_backoff_s``, disturbance
-   compensation kept) until that node verifies again — it moves before it looks again;
-2. re-localizes, turning in place to search: a node within ``recover_local_hops`` of that node that
+   compensation kept) until that node verifies again or the bumper reports contact (the drift took
+   it elsewhere: the way back is no longer the way it came) — it moves before it looks again;
+2. re-localizes, turning in place to search (the estimated drift cancelled in translation as well
+   as yaw, as when holding still: a turn under a forward bias otherwise wanders into walls): a node within ``recover_local_hops`` of that node that
    verifies is preferred; an answer farther away is taken only at ``recover_far_confidence`` (when
    calibrated) and confirmed by a second look (a single frame of a look-alike place is not
    enough); after a full turn without either, it keeps the last node that verified well (after a
@@ -179,6 +188,7 @@ class NavOutcome:
     route: tuple[int, ...] = ()
     final_estimate_m: float = math.nan  # servo's own estimate of the remaining distance [m]
     final_heading_estimate_deg: float = math.nan
+    contact_periods: int = 0  # control periods the robot's bumper reported touching something
 
 
 class _Failed(Exception):
@@ -361,16 +371,20 @@ class Navigator:
         # commands sent since the last good verification (what backing off inverts)
         self._trail: deque[Command] = deque(maxlen=max(1, int(round(self.config.recover_backoff_s / self.config.control_period_s))))
         self._tried: dict[str, float] = {}  # what recovery did, for the final message
+        self._contact_streak = 0  # periods in a row the bumper reported contact
         height = self.config.camera_height_m
         self._camera_height_m = height if height is not None else getattr(robot, "camera_height_m", None)
 
     # ------------------------------------------------------------------ robot I/O
     def _scan_step(self, duration_s: float | None = None) -> float:
-        """Turn in place for ``duration_s`` (default ``scan_every_s``; the estimated yaw disturbance
-        compensated); returns the angle turned [rad]."""
+        """Turn in place for ``duration_s`` (default ``scan_every_s``; the estimated disturbance
+        compensated, translation as well as yaw); returns the angle turned [rad]."""
         cfg = self.config
+        # the body-frame drift the hold cancels does not stop while turning: uncompensated, a 12.8 s
+        # search turn under a 4 cm/s bias wanders tens of centimetres, into walls (docs/navigation.md)
+        hold = self._hold_command()
         d_omega = self._estimate.d_omega if self._estimate is not None and self._estimate.ready else 0.0
-        turn = Command(0.0, 0.0, cfg.scan_turn_rps - d_omega)
+        turn = Command(hold.v_f, hold.v_h, cfg.scan_turn_rps - d_omega).for_vehicle(self.vehicle)
         turned = 0.0
         duration_s = cfg.scan_every_s if duration_s is None else duration_s
         for _ in range(max(1, int(round(duration_s / cfg.control_period_s)))):
@@ -383,18 +397,36 @@ class Navigator:
         # the vocabulary words only serve global localization, not the servo's matching each period
         return image, self.localizer.prepare(image, words=localizing)
 
-    def _move(self, command: Command, trail: bool = False) -> None:
+    def _move(self, command: Command, trail: bool = False) -> bool:
+        """Apply ``command`` for one period; returns whether the robot's bumper reported contact
+        (a ``collided`` flag on what ``apply`` returns; robots without one never report it)."""
         dt = self.config.control_period_s
         if trail:
             self._trail.append(command)
-        self.robot.apply(command, dt)
+        report = self.robot.apply(command, dt)
         self._time += dt
         self._last_command = command
         self.outcome.steps += 1
+        contact = getattr(report, "collided", False) is True
+        self._contact_streak = self._contact_streak + 1 if contact else 0
+        if contact:
+            self.outcome.contact_periods += 1
+        return contact
+
+    def _hold_command(self) -> Command:
+        """The command that stands still, cancelling the disturbances the servo has estimated."""
+        return self.servo.hold_command(self._estimate) if self._estimate is not None else STOP
+
+    def _undone(self, cmd: Command, hold: Command, turn: bool = True) -> Command:
+        """The inverse of ``cmd``'s intent with ``hold``'s compensation kept (a command is compensation
+        plus intent); ``turn=False`` undoes only its translation."""
+        omega = 2 * hold.omega - cmd.omega if turn else hold.omega
+        back = Command(2 * hold.v_f - cmd.v_f, 2 * hold.v_h - cmd.v_h, omega)
+        return back.clipped(self.servo.config.max_speed_mps, self.servo.config.max_turn_rps).for_vehicle(self.vehicle)
 
     def _hold(self) -> None:
         """Stand still for one period, cancelling the disturbances the servo has estimated."""
-        self._move(self.servo.hold_command(self._estimate) if self._estimate is not None else STOP)
+        self._move(self._hold_command())
 
     def _match(self, q: Query, node: int) -> Verification:
         return verify(q.features, self.map.nodes[node].features, self.map.config.match)
@@ -449,8 +481,10 @@ class Navigator:
             found = fallback
         if found is None:
             conf = best.confidence if best else 0.0
+            # the confidence is appearance's; an answer its geometry did not verify is not declared
+            checked = f", {best.inliers} verified inliers" if best is not None and best.confidence >= self.localizer.config.min_confidence else ""
             seen = f"; node {fallback[0].node} was not seen again in a second turn" if fallback is not None else ""
-            raise _Failed(NavStatus.FAILED, f"could not localize in the map after a full turn (best confidence {conf:.2f}){seen}")
+            raise _Failed(NavStatus.FAILED, f"could not localize in the map after a full turn (best confidence {conf:.2f}{checked}){seen}")
         loc, why = found
         self._here = loc.node
         yield NavEvent(EventKind.LOCALIZED, self._time, f"at node {loc.node} ({why})", subgoal=loc.node, localization=loc)
@@ -618,6 +652,8 @@ class Navigator:
                     lambda: self.agreement.agrees(qa, va, sub, cfg.settle_patience_image_error), floor_m)
                 if arrived == "far":
                     self._rescale(leg)
+                elif arrived and self._contact_streak:
+                    pass  # touching something: the goal keyframe was taken clear of walls
                 elif arrived:
                     self._move(STOP)
                     out.status = NavStatus.ARRIVED
@@ -653,9 +689,14 @@ class Navigator:
             stuck = (self._time - leg.since_switch_s > cfg.subgoal_timeout_s if not final else
                      leg.settle.not_approaching(cfg.goal_no_progress_s, cfg.goal_no_progress_m))
             fooled = leg.settle.false_arrival >= cfg.lost_after_steps
-            if leg.lost >= cfg.lost_after_steps or stuck or fooled:
+            blocked = self._contact_streak >= cfg.contact_blocked_steps
+            if leg.lost >= cfg.lost_after_steps or stuck or fooled or blocked:
                 why = ("lost sight of" if leg.lost >= cfg.lost_after_steps else
-                       "was fooled by a look-alike of" if fooled else "could not reach")
+                       "was fooled by a look-alike of" if fooled else
+                       "was blocked on the way to" if blocked else "could not reach")
+                if blocked:
+                    self._count("blocked by contact")
+                    self._reverse(self._last_command or STOP)
                 prev = nodes[i - 1] if i > 0 else None
                 if prev is not None:
                     self.planner.penalize(prev, sub)
@@ -696,20 +737,28 @@ class Navigator:
         self._trail.clear()
         if target is None or not trail:
             return 0.0
-        # a command is disturbance compensation plus intent: undo the intent, keep the compensation
-        hold = self.servo.hold_command(self._estimate) if self._estimate is not None else STOP
-        scfg = self.servo.config
+        hold = self._hold_command()
         driven = 0.0
         for k, cmd in enumerate(trail):
             if k % BACKOFF_CHECK_EVERY == 0 and k > 0:
                 _, q = self._look()
                 if self._match(q, target).inliers >= cfg.switch_min_inliers:
                     break
-            back = Command(2 * hold.v_f - cmd.v_f, 2 * hold.v_h - cmd.v_h, 2 * hold.omega - cmd.omega)
-            self._move(back.clipped(scfg.max_speed_mps, scfg.max_turn_rps).for_vehicle(self.vehicle))
             driven += cfg.control_period_s
+            if self._move(self._undone(cmd, hold)):
+                self._count("back-offs ended by contact")
+                break  # the drift took it elsewhere: the way back is not the way it came
         self._hold()
         return driven
+
+    def _reverse(self, pushing: Command) -> None:
+        """Drive the translation of ``pushing`` backwards (compensation kept, no turn) for
+        ``contact_reverse_s`` or until the bumper reports contact again."""
+        back = self._undone(pushing, self._hold_command(), turn=False)
+        self._contact_streak = 0
+        for _ in range(max(1, int(round(self.config.contact_reverse_s / self.config.control_period_s)))):
+            if self._move(back):
+                break
 
     def _near(self, node: int | None) -> set[int]:
         """The nodes within ``recover_local_hops`` of ``node`` (empty for None)."""
@@ -804,6 +853,10 @@ class Navigator:
             parts.append(f"turned {t['searched']:.0f} deg in place searching")
         if "re-localizations" in t:
             parts.append(f"re-localized {t['re-localizations']:.0f} times ({t.get('far re-localizations', 0):.0f} far)")
+        if "blocked by contact" in t:
+            parts.append(f"reversed out of contact {t['blocked by contact']:.0f} times")
+        if "back-offs ended by contact" in t:
+            parts.append(f"ended {t['back-offs ended by contact']:.0f} back-offs at contact")
         if "arrivals the floor refused" in t:
             parts.append(f"took the floor's scale at the goal {t['arrivals the floor refused']:.0f} times")
         return ", ".join(parts) or "nothing"
