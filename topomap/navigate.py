@@ -60,12 +60,13 @@ test or the bumper reports the way blocked, the navigator stops and
    drives the inverse of the commands sent since then (at most ``recover_backoff_s``, disturbance
    compensation kept) until that node verifies again or the bumper reports contact (the drift took
    it elsewhere: the way back is no longer the way it came) — it moves before it looks again;
-2. re-localizes, turning in place to search (the estimated drift cancelled in translation as well
-   as yaw, as when holding still: a turn under a forward bias otherwise wanders into walls): a node within ``recover_local_hops`` of that node that
-   verifies is preferred; an answer farther away is taken only at ``recover_far_confidence`` (when
-   calibrated) and confirmed by a second look (a single frame of a look-alike place is not
-   enough); after a full turn without either, it keeps the last node that verified well (after a
-   look-alike fooled the goal's settle test there is none: it re-localizes globally);
+2. re-localizes, turning in place to search (the estimated drift cancelled in translation as well as
+   yaw, as when holding still: a turn under a forward bias otherwise wanders into walls): a node
+   within ``recover_local_hops`` of that node that verifies is preferred; an answer farther away is
+   taken only at ``recover_far_confidence`` (when calibrated) and confirmed by a second look (a
+   single frame of a look-alike place is not enough); after a full turn without either, it keeps the
+   last node that verified well (after a look-alike fooled the goal's settle test there is none: it
+   re-localizes globally);
 3. penalises the edge it was following and re-plans.
 
 It does not give up while more than ``give_up_budget_fraction`` of the time budget is left and the
@@ -369,7 +370,7 @@ class Navigator:
         self._approach_side: float | None = None  # side of the subgoal camera the robot comes from
         self._last_good: int | None = None  # the last node that verified well
         # commands sent since the last good verification (what backing off inverts)
-        self._trail: deque[Command] = deque(maxlen=max(1, int(round(self.config.recover_backoff_s / self.config.control_period_s))))
+        self._trail: deque[Command] = deque(maxlen=self._periods(self.config.recover_backoff_s))
         self._tried: dict[str, float] = {}  # what recovery did, for the final message
         self._contact_streak = 0  # periods in a row the bumper reported contact
         height = self.config.camera_height_m
@@ -383,11 +384,12 @@ class Navigator:
         # the body-frame drift the hold cancels does not stop while turning: uncompensated, a 12.8 s
         # search turn under a 4 cm/s bias wanders tens of centimetres, into walls (docs/navigation.md)
         hold = self._hold_command()
+        # the yaw as before, the hold's or not: the uncompensated servo's search turn keeps its rate
         d_omega = self._estimate.d_omega if self._estimate is not None and self._estimate.ready else 0.0
         turn = Command(hold.v_f, hold.v_h, cfg.scan_turn_rps - d_omega).for_vehicle(self.vehicle)
         turned = 0.0
         duration_s = cfg.scan_every_s if duration_s is None else duration_s
-        for _ in range(max(1, int(round(duration_s / cfg.control_period_s)))):
+        for _ in range(self._periods(duration_s)):
             self._move(turn)
             turned += cfg.scan_turn_rps * cfg.control_period_s
         return turned
@@ -412,6 +414,10 @@ class Navigator:
         if contact:
             self.outcome.contact_periods += 1
         return contact
+
+    def _periods(self, duration_s: float) -> int:
+        """Control periods in ``duration_s`` (at least one)."""
+        return max(1, int(round(duration_s / self.config.control_period_s)))
 
     def _hold_command(self) -> Command:
         """The command that stands still, cancelling the disturbances the servo has estimated."""
@@ -482,7 +488,8 @@ class Navigator:
         if found is None:
             conf = best.confidence if best else 0.0
             # the confidence is appearance's; an answer its geometry did not verify is not declared
-            checked = f", {best.inliers} verified inliers" if best is not None and best.confidence >= self.localizer.config.min_confidence else ""
+            declarable = best is not None and best.confidence >= self.localizer.config.min_confidence
+            checked = f", {best.inliers} verified inliers" if declarable else ""
             seen = f"; node {fallback[0].node} was not seen again in a second turn" if fallback is not None else ""
             raise _Failed(NavStatus.FAILED, f"could not localize in the map after a full turn (best confidence {conf:.2f}{checked}){seen}")
         loc, why = found
@@ -652,9 +659,7 @@ class Navigator:
                     lambda: self.agreement.agrees(qa, va, sub, cfg.settle_patience_image_error), floor_m)
                 if arrived == "far":
                     self._rescale(leg)
-                elif arrived and self._contact_streak:
-                    pass  # touching something: the goal keyframe was taken clear of walls
-                elif arrived:
+                elif arrived and not self._contact_streak:  # never touching: keyframes were taken clear of walls
                     self._move(STOP)
                     out.status = NavStatus.ARRIVED
                     floor = leg.settle.floor_distance(cfg.settle_patience_s if arrived == "settled" else None)
@@ -756,7 +761,7 @@ class Navigator:
         ``contact_reverse_s`` or until the bumper reports contact again."""
         back = self._undone(pushing, self._hold_command(), turn=False)
         self._contact_streak = 0
-        for _ in range(max(1, int(round(self.config.contact_reverse_s / self.config.control_period_s)))):
+        for _ in range(self._periods(self.config.contact_reverse_s)):
             if self._move(back):
                 break
 
