@@ -429,14 +429,16 @@ def foreign(maps: dict[str, object]) -> None:
 def labelled_folds(name: str, m, names, images, truth) -> None:
     """``topomap index --calibrate-on``: the calibration fitted on labelled queries, two folds (fit on
     one half of the queries, scored on the other), against the map's self-supervised calibration on
-    the same half; single frames (the sequence confidence is the filter's posterior, not refitted)."""
+    the same half; single frames, then the sequence filter (its confidence refitted where the fitted
+    half has enough of its answers wrong, else the filter's posterior: ``seq fit`` says which)."""
     from topomap.self_supervision import calibrate_on_queries
 
     half = len(names) // 2
     folds = [(range(0, half), range(half, len(names))), (range(half, len(names)), range(0, half))]
     print(f"\nlabelled calibration, {name}: fitted on one half of the queries (`topomap index --calibrate-on`), "
-          "scored on the other half; single frame")
-    print(f"{'scored on':<12}{'calibration':<18}{'top-1':>7}{'decl':>7}{'decl&ok':>8}{'prec':>7}{'ECE':>7}{'AUC':>7}")
+          "scored on the other half")
+    print(f"{'scored on':<12}{'calibration':<18}{'mode':<10}{'top-1':>7}{'decl':>7}{'decl&ok':>8}{'prec':>7}{'ECE':>7}"
+          f"{'AUC':>7}  seq fit")
     good_of = right_nodes(truth, m)
     for fit, held in folds:
         label = f"{held.start}-{held.stop - 1}"
@@ -444,9 +446,12 @@ def labelled_folds(name: str, m, names, images, truth) -> None:
             mm = dataclasses.replace(m, meta=dict(m.meta))
             if kind == "labelled":
                 calibrate_on_queries(mm, [(images[i], good_of(names[i])) for i in fit], seed=mm.config.seed)
-            res, _, _, _ = run_topomap(mm, [names[i] for i in held], [images[i] for i in held], truth, False)
-            print(f"{label:<12}{kind:<18}{res.recall_at[1]:7.3f}{res.declared:7.3f}{res.declared_right:8.3f}"
-                  f"{res.declared_precision:7.3f}{res.ece:7.3f}{res.auc:7.3f}")
+            fitted = "yes" if (mm.meta.get("calibration") or {}).get("sequence") else "no"
+            for seq in (False, True):
+                res, _, _, _ = run_topomap(mm, [names[i] for i in held], [images[i] for i in held], truth, seq)
+                print(f"{label:<12}{kind:<18}{'sequence' if seq else 'single':<10}{res.recall_at[1]:7.3f}"
+                      f"{res.declared:7.3f}{res.declared_right:8.3f}{res.declared_precision:7.3f}{res.ece:7.3f}"
+                      f"{res.auc:7.3f}  {fitted if kind == 'labelled' and seq else '-'}")
 
 
 def main() -> None:

@@ -288,7 +288,10 @@ def _calibration_line(m, map_path: Path) -> str:
         return f"no: confidences are raw (`topomap index {map_path}` fits one)"
     f = cal.fitted_for
     if f.get("labelled"):
-        return f"fitted on {f.get('samples', '?')} labelled queries ({f.get('right', '?')} answered right), descriptor {f.get('descriptor', '?')}"
+        seq = ("; sequence confidence fitted too" if cal.sequence is not None else
+               "; sequence confidence: the filter's posterior (too few of its answers wrong to fit)")
+        return (f"fitted on {f.get('samples', '?')} labelled queries ({f.get('right', '?')} answered right), "
+                f"descriptor {f.get('descriptor', '?')}{seq}")
     return f"self-supervised, {f.get('samples', '?')} samples ({f.get('right', '?')} right), descriptor {f.get('descriptor', '?')}"
 
 

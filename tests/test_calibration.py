@@ -63,3 +63,29 @@ def test_calibration_round_trip_and_other_versions():
     assert Calibration.from_meta({"calibration": {**cal.to_dict(), "version": 99}}) is None  # other definitions
     with pytest.raises(MapFormatError):
         Calibration.from_meta({"calibration": {**cal.to_dict(), "reference": {"snr": "x"}}})
+
+
+def test_a_fit_around_a_prior_moves_with_the_evidence():
+    prior = Calibrator(("belief_log_odds",), (1.0,), 0.0)
+    rng = np.random.default_rng(0)
+    # the truth: P(right) = sigmoid(2 + 0.5 x), far from the prior (weight 1, intercept 0)
+    x = rng.normal(0.0, 2.0, (4000, 1))
+    y = rng.random(4000) < 1.0 / (1.0 + np.exp(-(2.0 + 0.5 * x[:, 0])))
+    many = Calibrator.fit(prior.features, x, y, around=prior)
+    few = Calibrator.fit(prior.features, x[:8], y[:8], around=prior)
+    assert many.intercept == pytest.approx(2.0, abs=0.25) and many.coef[0] == pytest.approx(0.5, abs=0.1)
+    # eight samples move the model from the prior by less than they would unconstrained
+    assert abs(few.intercept) + abs(few.coef[0] - 1.0) < abs(many.intercept) + abs(many.coef[0] - 1.0)
+    with pytest.raises(ValueError, match="prior model"):
+        Calibrator.fit(("margin",), x, y, around=prior)
+
+
+def test_a_sequence_calibration_round_trips_and_a_malformed_one_is_refused():
+    from topomap.calibration import POSTERIOR
+
+    cal = Calibration(Calibrator(("margin",), (1.0,), 0.0), {"snr": 3.0}, {"nodes": 5}, POSTERIOR)
+    assert Calibration.from_meta({"calibration": cal.to_dict()}) == cal
+    assert "sequence" not in Calibration(cal.single, cal.reference, cal.fitted_for).to_dict()
+    for bad in ({"features": ["margin"], "coef": [1.0], "intercept": 0.0}, "x", {"coef": [1.0]}):
+        with pytest.raises(MapFormatError):
+            Calibration.from_meta({"calibration": {**cal.to_dict(), "sequence": bad}})

@@ -190,3 +190,50 @@ def test_too_few_or_one_sided_labelled_queries_fit_no_calibration(walk_map):
     with pytest.raises(CalibrationError, match="both right and wrong"):
         calibrate_on_queries(m, [q for q in queries if not q[1]])  # all wrong: a place not in the map
     assert "calibration" not in m.meta
+
+
+def _labelled_walk(m, seed: int, n: int, foreign: int):
+    """(image, right nodes) of ``n`` views along the walk in order (noise, a few px aside), then
+    ``foreign`` views of a place not in the map: a labelled traversal for the sequence filter."""
+    rng = np.random.default_rng(seed)
+    node_of = [f.node for f in m.frames]
+    tex, other = scene(4, width=4000), scene(11, width=4000)
+    out = []
+    for x in np.linspace(0.0, XS[-1], n):
+        i = int(np.argmin(np.abs(XS - x)))
+        img = np.clip(window(tex, x, y=40.0 + rng.uniform(-6, 6)) + rng.normal(0, 8.0, FRAME_SIZE[::-1]), 0, 255)
+        out.append((img.astype(np.uint8), {node_of[j] for j in range(max(0, i - 1), min(len(XS), i + 2))}))
+    out += [(window(other, x, y=40.0), set()) for x in np.linspace(0.0, XS[-1], foreign)]
+    return out
+
+
+def test_labelled_queries_in_order_calibrate_the_sequence_confidence_too(walk_map):
+    from topomap.localize import SequenceLocalizer, sequence_evidence
+
+    m = fresh(walk_map)
+    queries = _labelled_walk(m, 0, 40, 20)
+    cal = calibrate_on_queries(m, queries, seed=1)
+    assert cal.sequence is not None and cal.fitted_for["sequence_right"] >= 10
+    loc = Localizer(m)
+    assert loc.calibration.sequence == cal.sequence  # stored in the map's meta, read back
+    raw = SequenceLocalizer(Localizer(m, LocalizeConfig(use_calibration=False)))
+    filt = SequenceLocalizer(loc)
+    for img, _ in queries[:10]:
+        r, r0 = filt.update(img), raw.update(img)
+        # the same filter; its belief mass on the answer mapped to a probability
+        assert r.node == r0.node and r.evidence["belief"] == pytest.approx(r0.confidence)
+        evidence = sequence_evidence(r0.confidence, r0.evidence["elsewhere"])
+        assert r.calibrated and r.confidence == pytest.approx(cal.sequence.probability(evidence))
+    # a place not in the map, walked: the calibrated filter declares none of it
+    filt.reset()
+    away = [filt.update(window(scene(12, width=4000), x, y=40.0)) for x in np.linspace(0.0, XS[-1], 20)]
+    assert not any(r.localized for r in away)
+
+
+def test_a_sequence_rarely_wrong_keeps_the_filters_posterior(walk_map):
+    m = fresh(walk_map)
+    queries = _labelled_walk(m, 0, 40, 0)
+    queries += [q for q in _labelled_queries(m, 2, 20) if not q[1]]  # foreign views, alone: wrong single frames
+    cal = calibrate_on_queries(m, queries[:40] + queries[40:46], seed=1)
+    # fewer than MIN_SEQUENCE_EACH wrong answers of the filter: its upper end cannot be calibrated
+    assert cal.sequence is None and "sequence" not in m.meta["calibration"]

@@ -10,6 +10,10 @@ sign-constrained to the direction each piece of evidence must act in (more inlie
 the probability, a noisier image only lower it): a model fitted on the map's own keyframes then
 cannot learn a direction that holds there by accident and fails on the queries it has never seen.
 
+The sequence filter's belief mass is a probability by construction, but of the filter's model of
+the camera; fitted on labelled queries, a one-weight model around it (:data:`POSTERIOR`) maps it to
+the frequency of being right.
+
 A map's :class:`Calibration` holds the model, fitted self-supervised (:mod:`topomap.self_supervision`)
 and stored in the map's meta as plain numbers. :func:`expected_calibration_error` and :func:`reliability` score a set of answers.
 """
@@ -25,7 +29,7 @@ from scipy.optimize import minimize
 
 from topomap.errors import MapFormatError
 
-__all__ = ["SINGLE_FEATURES", "FEATURE_SIGNS", "Calibrator", "Calibration", "ImageQuality",
+__all__ = ["SINGLE_FEATURES", "SEQUENCE_FEATURES", "POSTERIOR", "FEATURE_SIGNS", "Calibrator", "Calibration", "ImageQuality",
            "image_quality", "quality_reference", "quality_evidence", "expected_calibration_error", "reliability", "logit", "CALIBRATION_KEY"]
 
 #: Map meta key of the calibration (plain numbers; see :meth:`Calibration.to_dict`).
@@ -36,7 +40,11 @@ EVIDENCE_VERSION = 1
 #: Evidence a single-frame answer is judged by (see :meth:`topomap.localize.Localizer.evidence`).
 SINGLE_FEATURES = ("margin", "log_inliers", "log_odds", "low_snr", "contrast_loss", "clipping")
 #: The direction each feature may act in (+1 raises the probability, -1 lowers it).
-FEATURE_SIGNS = {"margin": 1, "log_inliers": 1, "log_odds": 1, "low_snr": -1, "contrast_loss": -1, "clipping": -1}
+FEATURE_SIGNS = {"margin": 1, "log_inliers": 1, "log_odds": 1, "low_snr": -1, "contrast_loss": -1, "clipping": -1,
+                 "belief_log_odds": 1, "elsewhere_log_odds": -1}
+#: Evidence a sequence answer is judged by: the log-odds of the filter's belief mass on the answer and
+#: of its probability that the camera is in no place of the map.
+SEQUENCE_FEATURES = ("belief_log_odds", "elsewhere_log_odds")
 #: L2 penalty of the fit per sample [1 / weight^2]: a little shrinkage keeps weights finite where
 #: the self-supervised samples separate perfectly.
 _RIDGE = 1e-2
@@ -61,14 +69,25 @@ class Calibrator:
         return 1.0 / (1.0 + math.exp(-min(max(z, -50.0), 50.0)))
 
     @classmethod
-    def fit(cls, features: tuple[str, ...], x: np.ndarray, y: np.ndarray, weights: np.ndarray | None = None) -> Calibrator:
+    def fit(cls, features: tuple[str, ...], x: np.ndarray, y: np.ndarray, weights: np.ndarray | None = None, *,
+            around: Calibrator | None = None, prior_sd: float = 1.0) -> Calibrator:
         """Maximum-likelihood logistic fit of ``y`` (N,) bool on ``x`` (N, F), each weight bounded to
         its sign in :data:`FEATURE_SIGNS` (scipy L-BFGS-B; scikit-learn's logistic regression has no
-        bounds)."""
+        bounds). With ``around`` (a model of the same features) the fit is the posterior mode under a
+        Gaussian prior of standard deviation ``prior_sd`` centred on it, intercept included: few
+        samples move the model little from a model that is already a probability."""
         x = np.asarray(x, np.float64).reshape(len(y), len(features))
         y = np.asarray(y, np.float64)
         w = np.ones(len(y)) if weights is None else np.asarray(weights, np.float64)
         w = w / w.sum() * len(w)
+
+        if around is not None:
+            if around.features != tuple(features):
+                raise ValueError(f"the prior model is over {around.features}, not {tuple(features)}")
+            centre, k = np.r_[around.intercept, around.coef], 1.0 / (2.0 * prior_sd**2 * len(y))
+        else:  # ridge on the weights only
+            centre, k = np.zeros(len(features) + 1), _RIDGE
+        mask = np.r_[float(around is not None), np.ones(len(features))]
 
         def loss(theta):
             z = theta[0] + x @ theta[1:]
@@ -76,13 +95,13 @@ class Calibrator:
             nll = np.logaddexp(0.0, z) - y * z
             p = 1.0 / (1.0 + np.exp(-z))
             g = w * (p - y)
-            reg = _RIDGE * float(theta[1:] @ theta[1:])
-            return float(w @ nll) / len(y) + reg, np.r_[g.sum(), x.T @ g] / len(y) + np.r_[0.0, 2 * _RIDGE * theta[1:]]
+            d = mask * (theta - centre)
+            return float(w @ nll) / len(y) + k * float(d @ d), np.r_[g.sum(), x.T @ g] / len(y) + 2 * k * d
 
         bounds = [(None, None)] + [(0.0, None) if FEATURE_SIGNS.get(f, 0) > 0 else (None, 0.0) if FEATURE_SIGNS.get(f, 0) < 0
                                    else (None, None) for f in features]
         base = float(np.clip(np.average(y, weights=w), _EPS, 1 - _EPS))
-        theta0 = np.r_[math.log(base / (1 - base)), np.zeros(len(features))]
+        theta0 = centre.copy() if around is not None else np.r_[math.log(base / (1 - base)), np.zeros(len(features))]
         res = minimize(loss, theta0, jac=True, method="L-BFGS-B", bounds=bounds)
         return cls(tuple(features), tuple(float(c) for c in res.x[1:]), float(res.x[0]))
 
@@ -165,20 +184,30 @@ def quality_evidence(q: ImageQuality, reference: dict) -> dict[str, float]:
     return {"low_snr": low_snr, "contrast_loss": contrast_loss, "clipping": clipping}
 
 
+#: The sequence filter's posterior as it is: ``P(right) = belief mass`` (the prior a labelled sequence
+#: calibration is fitted around).
+POSTERIOR = Calibrator(SEQUENCE_FEATURES, (1.0, 0.0), 0.0)
+
+
 @dataclass(frozen=True)
 class Calibration:
     """A map's calibration: the ``single``-frame calibrator; ``reference`` the keyframes' median image
     quality (``snr``, ``contrast``) the query's is compared with; ``fitted_for``: the map it was
     fitted on (``nodes``, ``descriptor``) and its samples (``samples``, ``right``, ``seed``), to tell a
-    stale calibration."""
+    stale calibration; ``sequence``: the map of the sequence filter's belief mass to a probability
+    (fitted on labelled queries only; ``None``: the filter's posterior is the confidence)."""
 
     single: Calibrator
     reference: dict
     fitted_for: dict
+    sequence: Calibrator | None = None
 
     def to_dict(self) -> dict:
-        return {"version": EVIDENCE_VERSION, "single": self.single.to_dict(), "reference": dict(self.reference),
-                "fitted_for": dict(self.fitted_for)}
+        d = {"version": EVIDENCE_VERSION, "single": self.single.to_dict(), "reference": dict(self.reference),
+             "fitted_for": dict(self.fitted_for)}
+        if self.sequence is not None:
+            d["sequence"] = self.sequence.to_dict()
+        return d
 
     @classmethod
     def from_meta(cls, meta: dict) -> Calibration | None:
@@ -193,10 +222,13 @@ class Calibration:
             raise MapFormatError("the map's calibration is malformed; refit it with `topomap index MAP`") from None
         if not all(math.isfinite(v) and v >= 0 for v in reference.values()):
             raise MapFormatError("the map's calibration is malformed; refit it with `topomap index MAP`")
-        single = d.get("single")
-        if not isinstance(single, dict):
+        single, sequence = d.get("single"), d.get("sequence")
+        if not isinstance(single, dict) or not (sequence is None or isinstance(sequence, dict)):
             raise MapFormatError("the map's calibration is malformed; refit it with `topomap index MAP`")
-        return cls(Calibrator.from_dict(single), reference, fitted_for)
+        seq = None if sequence is None else Calibrator.from_dict(sequence)
+        if seq is not None and seq.features != SEQUENCE_FEATURES:
+            raise MapFormatError("the map's calibration is malformed; refit it with `topomap index MAP`")
+        return cls(Calibrator.from_dict(single), reference, fitted_for, seq)
 
 
 def reliability(confidence: np.ndarray, correct: np.ndarray, bins: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

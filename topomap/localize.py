@@ -728,8 +728,14 @@ class SequenceLocalizer:
         frame_ev = {**ev1, "frame_probability": self.frame.confidence if calibrated else None, "elsewhere": e,
                     "frame_ratio": ratio}
 
+        seq_model = loc.calibration.sequence if calibrated else None
+
         def confidence(row: int, mass: float) -> tuple[float, bool, dict]:
-            return mass, calibrated, frame_ev
+            ev = {**frame_ev, "belief": mass}
+            if seq_model is None:  # the filter's posterior
+                return mass, calibrated, ev
+            # a labelled calibration maps the posterior to the frequency of being right
+            return seq_model.probability(sequence_evidence(mass, e)), True, ev
 
         out = loc.answer(self.belief, score, checks, self.belief, confidence)
         if out.localized and not loc.use_bow and ratio < cfg.declare_min_frame_ratio:
@@ -740,6 +746,12 @@ class SequenceLocalizer:
     def run(self, images: Iterable[np.ndarray]) -> Iterator[Localization]:
         for img in images:
             yield self.update(img)
+
+
+def sequence_evidence(mass: float, elsewhere: float) -> dict[str, float]:
+    """What a sequence answer is judged by (:data:`topomap.calibration.SEQUENCE_FEATURES`): the
+    log-odds of the belief mass on the answer and of the filter's probability of being elsewhere."""
+    return {"belief_log_odds": logit(mass), "elsewhere_log_odds": logit(elsewhere)}
 
 
 # ---------------------------------------------------------------------- graph helpers

@@ -24,7 +24,8 @@ of real queries from another traversal (corridor: margin 2.1 vs 2.4 z-units, log
 its right answers are easier than real ones — what the map's own images cannot show is how hard
 the next traversal will be — so the calibration errs on the side of caution (under-confident; see
 docs/localization.md). The sequence filter's posterior is a probability by construction and is
-not recalibrated; the calibration's image-quality reference lets it flatten the likelihood of noisy
+not recalibrated by self-supervision (labelled queries can: :func:`calibrate_on_queries`); the
+calibration's image-quality reference lets it flatten the likelihood of noisy
 and washed-out frames (:class:`~topomap.localize.SequenceLocalizer`).
 """
 
@@ -38,12 +39,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from topomap.calibration import CALIBRATION_KEY, SINGLE_FEATURES, Calibration, Calibrator, image_quality, quality_reference
+from topomap.calibration import (CALIBRATION_KEY, POSTERIOR, SEQUENCE_FEATURES, SINGLE_FEATURES, Calibration, Calibrator,
+                                  image_quality, quality_reference)
 from topomap.config import LocalizeConfig
 from topomap.errors import CalibrationError
 from topomap.graph import TopoMap
 from topomap.images import decode_image
-from topomap.localize import Localizer
+from topomap.localize import Localizer, SequenceLocalizer, sequence_evidence
 from topomap.parallel import Executor, worker_local
 from topomap.photometric import apply_photometric, random_photometric
 
@@ -375,6 +377,11 @@ def _keyframe_reference(tmap: TopoMap, queries: int, seed: int) -> tuple[list[in
 
 #: Labelled queries needed to fit a calibration on them (six weights and an intercept).
 MIN_LABELLED = 30
+#: The sequence calibration is fitted only when the filter answered at least this many of the labelled
+#: queries right and as many wrong.
+MIN_SEQUENCE_EACH = 10
+#: Standard deviation of the prior around the filter's posterior (weight 1, intercept 0).
+SEQUENCE_PRIOR_SD = 1.0
 
 
 def calibrate_on_queries(tmap: TopoMap, queries: Iterable[tuple[np.ndarray, Collection[int]]], *, seed: int = 0,
@@ -388,22 +395,44 @@ def calibrate_on_queries(tmap: TopoMap, queries: Iterable[tuple[np.ndarray, Coll
     than a real traversal's: the calibration is cautious); a traversal with ground truth shows it.
     Each query is localized as a single frame with raw confidences, and its evidence, right when the
     answer is among its right nodes, is a sample. Needs :data:`MIN_LABELLED` queries with both right
-    and wrong answers among them (raises :class:`CalibrationError`)."""
+    and wrong answers among them (raises :class:`CalibrationError`). The queries also pass, in their
+    order, through the sequence filter, and mirrored left-right with their right nodes excluded (a
+    traversal of a place not in the map: every answer wrong). Where the filter answers at least
+    :data:`MIN_SEQUENCE_EACH` of the queries right and as many wrong, its belief mass gets a
+    calibration too (``Calibration.sequence``, fitted around the posterior itself); otherwise the
+    sequence confidence stays the filter's posterior."""
     cfg = dataclasses.replace(config or LocalizeConfig(), use_calibration=False)
     loc = Localizer(tmap, cfg)
     # the keyframes' quality: the map's stored reference, else measured on its keyframe images
     reference = loc.quality_reference = (loc.quality_reference
                                          or _keyframe_reference(tmap, tmap.config.calibration.queries, seed)[1])
-    samples = CalibrationSamples(SINGLE_FEATURES)
+    samples, in_order = CalibrationSamples(SINGLE_FEATURES), CalibrationSamples(SEQUENCE_FEATURES)
+    filt, mirrored = SequenceLocalizer(loc), SequenceLocalizer(loc)
     for image, right in queries:
-        r = loc.localize(image)
+        q = loc.prepare(image)
+        r = loc.localize_query(q)
         samples.add(r.evidence, r.node in set(right), "labelled")
+        # the same queries, in their order, through the filter ...
+        s = filt.update_query(q)
+        in_order.add(sequence_evidence(s.confidence, filt.elsewhere), s.node in set(right), "labelled sequence")
+        # ... and mirrored, their places excluded: a traversal of another place of the same kind, so
+        # that the fit sees the filter's confidence where the camera is not in the map (always wrong;
+        # fitted on mapped frames alone, a foreign traversal got 0.87: docs/localization.md)
+        near = {n for m in right if m in tmap.nodes for n in _within_hops(tmap, m, ALIAS_HOPS)}
+        s = mirrored.update_query(loc.prepare(np.ascontiguousarray(q.image[:, ::-1])), exclude=near)
+        in_order.add(sequence_evidence(s.confidence, mirrored.elsewhere), False, "mirrored sequence")
     n, k = len(samples), int(samples.y.sum())
     if n < MIN_LABELLED or k in (0, n):
         raise CalibrationError(f"{NOT_CALIBRATED}: {n} labelled queries, {k} of them answered right; need at "
                                f"least {MIN_LABELLED} with both right and wrong answers")
+    sk = int(in_order.y.sum())
+    mapped = np.array(in_order.kinds) == "labelled sequence"
+    # a posterior's upper end is calibrated only by wrong answers among confident ones: with fewer, the
+    # fit would learn the base rate and declare everything (measured: docs/localization.md)
+    sequence = (Calibrator.fit(SEQUENCE_FEATURES, in_order.x, in_order.y, around=POSTERIOR, prior_sd=SEQUENCE_PRIOR_SD)
+                if min(sk, int(mapped.sum()) - sk) >= MIN_SEQUENCE_EACH else None)
     fitted_for = {"nodes": len(tmap.nodes), "descriptor": loc.mode, "samples": n, "right": k, "seed": seed,
-                  "labelled": True}
-    cal = Calibration(Calibrator.fit(SINGLE_FEATURES, samples.x, samples.y), reference, fitted_for)
+                  "labelled": True, "sequence_right": sk}
+    cal = Calibration(Calibrator.fit(SINGLE_FEATURES, samples.x, samples.y), reference, fitted_for, sequence)
     tmap.meta[CALIBRATION_KEY] = cal.to_dict()
     return cal
