@@ -781,3 +781,48 @@ def test_contact_blocked_steps_must_be_positive():
 
     with pytest.raises(ConfigError, match="contact_blocked_steps"):
         NavigateConfig(contact_blocked_steps=0)
+
+
+class _FoundAfterMoving:
+    """A localizer that recognises nothing until the robot has driven ``after_m`` forward (a start
+    facing a view the map cannot tell, a place it can a step away), then node 2 at 0.95."""
+
+    def __init__(self, robot, after_m):
+        from topomap.config import LocalizeConfig
+
+        self.robot, self.after_m, self.config = robot, after_m, LocalizeConfig()
+
+    def prepare(self, image, words=True):
+        from topomap.features import Features
+        from topomap.localize import Query
+
+        return Query(image, Features.empty("orb", image.shape[::-1]), np.zeros(0, np.float32))
+
+    def localize_query(self, q, exclude=()):
+        from topomap.localize import Localization, LocalizationStatus
+
+        driven = sum(c.v_f for c in self.robot.commands) * 0.05
+        if driven >= self.after_m:
+            return Localization(2, 0.95, LocalizationStatus.LOCALIZED, 40, ())
+        return Localization(0, 0.1, LocalizationStatus.UNKNOWN, 0, ())
+
+
+def test_a_start_that_finds_nothing_moves_and_scans_again():
+    """Held-out world 194 ep 1 (`moved`): a full turn found no place it could confirm and the start
+    failed at 12.8 s of a 60 s budget. Now it drives towards the turn's most textured view and scans
+    again while a quarter of the base budget is left; disabled (step 0) it fails after one turn."""
+    nav, robot = _blind_navigator(control_period_s=0.05)
+    nav.localizer = _FoundAfterMoving(robot, 0.3)
+    ev = next(e for e in nav.run(4) if e.kind in (EventKind.LOCALIZED, EventKind.FAILED))
+    assert ev.kind is EventKind.LOCALIZED and "after 1 move to scan elsewhere" in ev.message, ev.message
+    assert nav._tried.get("start search moves") == 1
+    nav, robot = _blind_navigator(control_period_s=0.05, start_search_step_m=0.0)
+    nav.localizer = _FoundAfterMoving(robot, 0.3)
+    ev = next(e for e in nav.run(4) if e.kind in (EventKind.LOCALIZED, EventKind.FAILED))
+    assert ev.kind is EventKind.FAILED and "after a full turn" in ev.message and ev.time_s < 15.0, ev.message
+    # never found: it scans and moves while the budget's share lasts, then says how often
+    nav, robot = _blind_navigator(control_period_s=0.05)
+    nav.localizer = _FoundAfterMoving(robot, 1e9)
+    ev = next(e for e in nav.run(4) if e.kind is EventKind.FAILED)
+    cfg = nav.config
+    assert "full turns and" in ev.message and 0.5 * cfg.time_budget_base_s < ev.time_s <= 0.75 * cfg.time_budget_base_s + 1.0, ev

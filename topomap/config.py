@@ -717,6 +717,11 @@ class NavigateConfig:
     # The confirming frame comes after a shorter turn than a scan step: a full step (~20 deg with an
     # uncompensated yaw disturbance) turned the candidate's view out of the image under changed light.
     start_confirm_every_s: float = 0.2
+    # A start turn that found nothing: drive up to this far towards the turn's most textured view and
+    # scan again, while the start has used less than (1 - give_up_budget_fraction) of
+    # time_budget_base_s (0 disables: one turn, then fail)
+    start_search_step_m: float = 0.6
+    start_search_speed_mps: float = 0.15
     scan_turn_rps: float = 0.5  # turning rate while scanning for a place to localize [rad/s]
     scan_every_s: float = 0.6  # localize attempts while scanning [s]
     time_budget_base_s: float = 60.0  # the whole navigation may last this [s] ...
@@ -744,6 +749,8 @@ class NavigateConfig:
             raise ConfigError("navigate arrive_floor_min_readings must be at least 1")
         if not self.arrive_floor_max_m > 0 or not self.start_confirm_heading_deg > 0:
             raise ConfigError("navigate arrive_floor_max_m and start_confirm_heading_deg must be positive")
+        if self.start_search_step_m < 0 or not self.start_search_speed_mps > 0:
+            raise ConfigError("navigate start_search_step_m must be >= 0 and start_search_speed_mps positive")
         if self.recover_backoff_s < 0 or self.recover_local_hops < 0:
             raise ConfigError("navigate recover_backoff_s and recover_local_hops must be >= 0")
         if self.recover_scale_tolerance is not None and not self.recover_scale_tolerance >= 1.0:

@@ -439,20 +439,60 @@ class Navigator:
 
     # ------------------------------------------------------------------ localization
     def _localize(self) -> Iterator[NavEvent]:
-        """Global localization from the current image; turns in place to scan when unsure.
-        Sets ``self._here``; raises _Failed when no place is recognised in a full turn.
+        """Global localization from the current image; turns in place to scan when unsure, and moves
+        to scan elsewhere while the time budget lasts. Sets ``self._here``; raises _Failed when no
+        place is recognised in any of the turns.
 
         An answer at ``min_confidence`` is taken at once; a weaker one (at least
         ``start_verified_confidence``) once the servo's geometry confirms it (:meth:`_start_pose`);
         after a full turn without either, the best answer of at least ``start_fallback_confidence``
-        the geometry confirmed, once its view is found again (:meth:`_face_again`)."""
+        the geometry confirmed, once its view is found again (:meth:`_face_again`). After a turn that
+        found nothing, while more than ``give_up_budget_fraction`` of ``time_budget_base_s`` is left,
+        the robot drives up to ``start_search_step_m`` towards the most textured view of the turn
+        (:meth:`_search_move`) and scans again: the start's view may be one the map cannot tell (a
+        plain wall, a panel moved since the teach run), a step away it may not be."""
         cfg = self.config
         best: Localization | None = None
+        turns = moves = 0
+        while True:
+            found, fallback, best, textured = self._start_turn(best)
+            turns += 1
+            if found is None and fallback is not None and self._face_again(fallback[0].node):
+                found = fallback
+            if found is not None:
+                break
+            # a turn and a step more must fit in the budget's share the start may use
+            if cfg.start_search_step_m == 0 or self._time + 2.0 * math.pi / cfg.scan_turn_rps + cfg.start_search_step_m / cfg.start_search_speed_mps \
+                    > (1.0 - cfg.give_up_budget_fraction) * cfg.time_budget_base_s:
+                break
+            moves += self._search_move(textured)
+        if found is None:
+            conf = best.confidence if best else 0.0
+            # the confidence is appearance's; an answer its geometry did not verify is not declared
+            declarable = best is not None and best.confidence >= self.localizer.config.min_confidence
+            checked = f", {best.inliers} verified inliers" if declarable else ""
+            seen = f"; node {fallback[0].node} was not seen again in a second turn" if fallback is not None else ""
+            where = f"after {turns} full turns and {moves} moves" if turns > 1 else "after a full turn"
+            raise _Failed(NavStatus.FAILED, f"could not localize in the map {where} (best confidence {conf:.2f}{checked}){seen}")
+        loc, why = found
+        if turns > 1:
+            why += f", after {turns - 1} move{'s' if turns > 2 else ''} to scan elsewhere"
+        self._here = loc.node
+        yield NavEvent(EventKind.LOCALIZED, self._time, f"at node {loc.node} ({why})", subgoal=loc.node, localization=loc)
+
+    def _start_turn(self, best: Localization | None
+                    ) -> tuple[tuple[Localization, str] | None, tuple[Localization, str] | None, Localization | None, float]:
+        """One full scanning turn of the start (see :meth:`_localize`): (the answer taken and why, or
+        None; the best confirmed answer below ``start_verified_confidence``, or None; the most
+        confident answer so far, ``best`` included; the angle turned to the view with the most
+        features [rad], counted from the turn's start)."""
+        cfg = self.config
         turned = 0.0
         found: tuple[Localization, str] | None = None
         fallback: tuple[Localization, str] | None = None  # the best confirmed answer below start_verified_confidence
         pending: tuple[Localization, RelativePose, Query] | None = None  # (answer, its pose, that frame)
         weakest = min(cfg.start_verified_confidence, cfg.start_fallback_confidence)  # worth confirming
+        textured, most = 0.0, (-1, -1)
         while True:
             image, q = self._look(localizing=True)
             if pending is not None:  # the previous frame's candidate: does its geometry hold after the turn?
@@ -473,6 +513,10 @@ class Navigator:
             loc = self.localizer.localize_query(q)
             if best is None or loc.confidence > best.confidence:
                 best = loc
+            # the view to move towards: the one whose answer verified best, else the most textured
+            score = (loc.inliers, len(q.features))
+            if score > most and turned < 2 * math.pi:
+                textured, most = turned, score
             if loc.localized:
                 found = (loc, f"confidence {loc.confidence:.2f}")
                 break
@@ -483,18 +527,27 @@ class Navigator:
             # a short turn before the confirming frame keeps the candidate's place in view
             turned += self._scan_step(cfg.start_confirm_every_s if pending is not None else None)
         self._hold()
-        if found is None and fallback is not None and self._face_again(fallback[0].node):
-            found = fallback
-        if found is None:
-            conf = best.confidence if best else 0.0
-            # the confidence is appearance's; an answer its geometry did not verify is not declared
-            declarable = best is not None and best.confidence >= self.localizer.config.min_confidence
-            checked = f", {best.inliers} verified inliers" if declarable else ""
-            seen = f"; node {fallback[0].node} was not seen again in a second turn" if fallback is not None else ""
-            raise _Failed(NavStatus.FAILED, f"could not localize in the map after a full turn (best confidence {conf:.2f}{checked}){seen}")
-        loc, why = found
-        self._here = loc.node
-        yield NavEvent(EventKind.LOCALIZED, self._time, f"at node {loc.node} ({why})", subgoal=loc.node, localization=loc)
+        return found, fallback, best, textured - turned
+
+    def _search_move(self, turn_rad: float) -> int:
+        """Turn by ``turn_rad`` (wrapped; the start's most textured view, where the space is open
+        rather than a wall close by) and drive forward up to ``start_search_step_m`` at
+        ``start_search_speed_mps``, the estimated disturbance compensated, stopping at the first
+        contact. Returns 1 (one move made)."""
+        cfg = self.config
+        turn = wrap_angle(turn_rad) % (2.0 * math.pi)  # the scan turns one way only
+        turned = 0.0
+        while turned + 0.5 * cfg.scan_turn_rps * cfg.control_period_s < turn:
+            turned += self._scan_step(cfg.control_period_s)
+        hold = self._hold_command()
+        ahead = Command(hold.v_f + cfg.start_search_speed_mps, hold.v_h, hold.omega).for_vehicle(self.vehicle)
+        for _ in range(self._periods(cfg.start_search_step_m / cfg.start_search_speed_mps)):
+            if self._move(ahead):
+                self._count("start search moves ended by contact")
+                break
+        self._hold()
+        self._count("start search moves")
+        return 1
 
     def _face_again(self, node: int) -> bool:
         """Turn on, at most one more full turn, until ``node``'s keyframe verifies again (the match's
