@@ -11,8 +11,9 @@ the probability, a noisier image only lower it): a model fitted on the map's own
 cannot learn a direction that holds there by accident and fails on the queries it has never seen.
 
 The sequence filter's belief mass is a probability by construction, but of the filter's model of
-the camera; fitted on labelled queries, a one-weight model around it (:data:`POSTERIOR`) maps it to
-the frequency of being right.
+the camera; fitted on labelled queries, a model of its log-odds and of the filter's probability of
+being elsewhere, centred on the posterior itself (:data:`POSTERIOR`), maps it to the frequency of
+being right.
 
 A map's :class:`Calibration` holds the model, fitted self-supervised (:mod:`topomap.self_supervision`)
 and stored in the map's meta as plain numbers. :func:`expected_calibration_error` and :func:`reliability` score a set of answers.

@@ -717,8 +717,8 @@ class NavigateConfig:
     # The confirming frame comes after a shorter turn than a scan step: a full step (~20 deg with an
     # uncompensated yaw disturbance) turned the candidate's view out of the image under changed light.
     start_confirm_every_s: float = 0.2
-    # A start turn that found nothing: drive up to this far towards the turn's most textured view and
-    # scan again, while the start has used less than (1 - give_up_budget_fraction) of
+    # A start turn that found nothing: drive up to this far towards the turn's view that verified best
+    # (else its most textured) and scan again, while the start has used less than (1 - give_up_budget_fraction) of
     # time_budget_base_s (0 disables: one turn, then fail)
     start_search_step_m: float = 0.6
     start_search_speed_mps: float = 0.15

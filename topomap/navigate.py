@@ -42,8 +42,9 @@ The start. An answer at ``LocalizeConfig.min_confidence`` is taken at once; a we
 ``start_verified_confidence``) only once the servo's geometry confirms it: its relative pose to the
 node has ``switch_min_inliers`` inliers, and after a short turn (``start_confirm_every_s``, so the
 place stays in view) it verifies again, with a heading that differs by the turn the two frames
-measure between them. Otherwise the scan goes on; after a full turn the
-start fails ("could not localize") rather than guess.
+measure between them. Otherwise the scan goes on; after a full turn that found nothing the robot
+moves a step towards the turn's best-verified view and scans again while a quarter of the base
+budget is left, and only then the start fails ("could not localize") rather than guess.
 
 The bumper. A robot whose ``apply`` returns a report with ``collided`` (the simulator's
 :class:`~topomap.sim.simulator.StepReport`; a contact sensor, not a pose) tells the navigator when it
@@ -448,31 +449,30 @@ class Navigator:
         after a full turn without either, the best answer of at least ``start_fallback_confidence``
         the geometry confirmed, once its view is found again (:meth:`_face_again`). After a turn that
         found nothing, while more than ``give_up_budget_fraction`` of ``time_budget_base_s`` is left,
-        the robot drives up to ``start_search_step_m`` towards the most textured view of the turn
-        (:meth:`_search_move`) and scans again: the start's view may be one the map cannot tell (a
+        the robot drives up to ``start_search_step_m`` towards the view of the turn whose answer
+        verified best (:meth:`_search_move`) and scans again: the start's view may be one the map cannot tell (a
         plain wall, a panel moved since the teach run), a step away it may not be."""
         cfg = self.config
         best: Localization | None = None
-        turns = moves = 0
+        turns = 0  # a move to scan elsewhere comes between two turns
+        # a turn and a step more must fit in the share of the budget the start may use
+        turn_and_step_s = 2.0 * math.pi / cfg.scan_turn_rps + cfg.start_search_step_m / cfg.start_search_speed_mps
         while True:
-            found, fallback, best, textured = self._start_turn(best)
+            found, fallback, best, towards = self._start_turn(best)
             turns += 1
             if found is None and fallback is not None and self._face_again(fallback[0].node):
                 found = fallback
-            if found is not None:
+            if found is not None or cfg.start_search_step_m == 0 or (
+                    self._time + turn_and_step_s > (1.0 - cfg.give_up_budget_fraction) * cfg.time_budget_base_s):
                 break
-            # a turn and a step more must fit in the budget's share the start may use
-            if cfg.start_search_step_m == 0 or self._time + 2.0 * math.pi / cfg.scan_turn_rps + cfg.start_search_step_m / cfg.start_search_speed_mps \
-                    > (1.0 - cfg.give_up_budget_fraction) * cfg.time_budget_base_s:
-                break
-            moves += self._search_move(textured)
+            self._search_move(towards)
         if found is None:
             conf = best.confidence if best else 0.0
             # the confidence is appearance's; an answer its geometry did not verify is not declared
             declarable = best is not None and best.confidence >= self.localizer.config.min_confidence
             checked = f", {best.inliers} verified inliers" if declarable else ""
             seen = f"; node {fallback[0].node} was not seen again in a second turn" if fallback is not None else ""
-            where = f"after {turns} full turns and {moves} moves" if turns > 1 else "after a full turn"
+            where = f"after {turns} full turns and {turns - 1} moves" if turns > 1 else "after a full turn"
             raise _Failed(NavStatus.FAILED, f"could not localize in the map {where} (best confidence {conf:.2f}{checked}){seen}")
         loc, why = found
         if turns > 1:
@@ -484,15 +484,15 @@ class Navigator:
                     ) -> tuple[tuple[Localization, str] | None, tuple[Localization, str] | None, Localization | None, float]:
         """One full scanning turn of the start (see :meth:`_localize`): (the answer taken and why, or
         None; the best confirmed answer below ``start_verified_confidence``, or None; the most
-        confident answer so far, ``best`` included; the angle turned to the view with the most
-        features [rad], counted from the turn's start)."""
+        confident answer so far, ``best`` included; the turn from the robot's heading now to the
+        view whose answer verified with the most inliers, else the one with the most features [rad])."""
         cfg = self.config
         turned = 0.0
         found: tuple[Localization, str] | None = None
         fallback: tuple[Localization, str] | None = None  # the best confirmed answer below start_verified_confidence
         pending: tuple[Localization, RelativePose, Query] | None = None  # (answer, its pose, that frame)
         weakest = min(cfg.start_verified_confidence, cfg.start_fallback_confidence)  # worth confirming
-        textured, most = 0.0, (-1, -1)
+        towards, most = 0.0, (-1, -1)
         while True:
             image, q = self._look(localizing=True)
             if pending is not None:  # the previous frame's candidate: does its geometry hold after the turn?
@@ -516,7 +516,7 @@ class Navigator:
             # the view to move towards: the one whose answer verified best, else the most textured
             score = (loc.inliers, len(q.features))
             if score > most and turned < 2 * math.pi:
-                textured, most = turned, score
+                towards, most = turned, score
             if loc.localized:
                 found = (loc, f"confidence {loc.confidence:.2f}")
                 break
@@ -527,13 +527,13 @@ class Navigator:
             # a short turn before the confirming frame keeps the candidate's place in view
             turned += self._scan_step(cfg.start_confirm_every_s if pending is not None else None)
         self._hold()
-        return found, fallback, best, textured - turned
+        return found, fallback, best, towards - turned
 
-    def _search_move(self, turn_rad: float) -> int:
-        """Turn by ``turn_rad`` (wrapped; the start's most textured view, where the space is open
-        rather than a wall close by) and drive forward up to ``start_search_step_m`` at
-        ``start_search_speed_mps``, the estimated disturbance compensated, stopping at the first
-        contact. Returns 1 (one move made)."""
+    def _search_move(self, turn_rad: float) -> None:
+        """Turn by ``turn_rad`` (wrapped; towards the start turn's best-verified view, a place
+        the map nearly recognised, or its most textured one, open space rather than a wall close by)
+        and drive forward up to ``start_search_step_m`` at ``start_search_speed_mps``, the estimated
+        disturbance compensated, stopping at the first contact."""
         cfg = self.config
         turn = wrap_angle(turn_rad) % (2.0 * math.pi)  # the scan turns one way only
         turned = 0.0
@@ -547,7 +547,6 @@ class Navigator:
                 break
         self._hold()
         self._count("start search moves")
-        return 1
 
     def _face_again(self, node: int) -> bool:
         """Turn on, at most one more full turn, until ``node``'s keyframe verifies again (the match's

@@ -409,12 +409,13 @@ def calibrate_on_queries(tmap: TopoMap, queries: Iterable[tuple[np.ndarray, Coll
     samples, in_order = CalibrationSamples(SINGLE_FEATURES), CalibrationSamples(SEQUENCE_FEATURES)
     filt, mirrored = SequenceLocalizer(loc), SequenceLocalizer(loc)
     for image, right in queries:
+        right = set(right)
         q = loc.prepare(image)
         r = loc.localize_query(q)
-        samples.add(r.evidence, r.node in set(right), "labelled")
+        samples.add(r.evidence, r.node in right, "labelled")
         # the same queries, in their order, through the filter ...
         s = filt.update_query(q)
-        in_order.add(sequence_evidence(s.confidence, filt.elsewhere), s.node in set(right), "labelled sequence")
+        in_order.add(sequence_evidence(s.confidence, filt.elsewhere), s.node in right, "labelled sequence")
         # ... and mirrored, their places excluded: a traversal of another place of the same kind, so
         # that the fit sees the filter's confidence where the camera is not in the map (always wrong;
         # fitted on mapped frames alone, a foreign traversal got 0.87: docs/localization.md)
@@ -425,12 +426,11 @@ def calibrate_on_queries(tmap: TopoMap, queries: Iterable[tuple[np.ndarray, Coll
     if n < MIN_LABELLED or k in (0, n):
         raise CalibrationError(f"{NOT_CALIBRATED}: {n} labelled queries, {k} of them answered right; need at "
                                f"least {MIN_LABELLED} with both right and wrong answers")
-    sk = int(in_order.y.sum())
-    mapped = np.array(in_order.kinds) == "labelled sequence"
+    sk = int(in_order.y.sum())  # of the n queries in order (the mirrored ones are all wrong)
     # a posterior's upper end is calibrated only by wrong answers among confident ones: with fewer, the
     # fit would learn the base rate and declare everything (measured: docs/localization.md)
     sequence = (Calibrator.fit(SEQUENCE_FEATURES, in_order.x, in_order.y, around=POSTERIOR, prior_sd=SEQUENCE_PRIOR_SD)
-                if min(sk, int(mapped.sum()) - sk) >= MIN_SEQUENCE_EACH else None)
+                if min(sk, n - sk) >= MIN_SEQUENCE_EACH else None)
     fitted_for = {"nodes": len(tmap.nodes), "descriptor": loc.mode, "samples": n, "right": k, "seed": seed,
                   "labelled": True, "sequence_right": sk}
     cal = Calibration(Calibrator.fit(SINGLE_FEATURES, samples.x, samples.y), reference, fitted_for, sequence)
