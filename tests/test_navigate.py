@@ -826,3 +826,100 @@ def test_a_start_that_finds_nothing_moves_and_scans_again():
     ev = next(e for e in nav.run(4) if e.kind is EventKind.FAILED)
     cfg = nav.config
     assert "full turns and" in ev.message and 0.5 * cfg.time_budget_base_s < ev.time_s <= 0.75 * cfg.time_budget_base_s + 1.0, ev
+
+
+class _LookAlikeFar:
+    """A localizer for which no near node ever verifies, while the whole map answers ``node`` at
+    0.99 (a stretch of look-alike photographs metres away, held-out world 200 ep 1)."""
+
+    def __init__(self, node):
+        from topomap.config import LocalizeConfig
+
+        self.node, self.config = node, LocalizeConfig()
+
+    def prepare(self, image, words=True):
+        from topomap.features import Features
+        from topomap.localize import Query
+
+        return Query(image, Features.empty("orb", image.shape[::-1]), np.zeros(0, np.float32))
+
+    def localize_query(self, q, exclude=()):
+        from topomap.localize import Localization, LocalizationStatus
+
+        if exclude:
+            return Localization(0, 0.1, LocalizationStatus.UNKNOWN, 0, ())
+        return Localization(self.node, 0.99, LocalizationStatus.LOCALIZED, 60, (), calibrated=True)
+
+
+def _chain_navigator(**config):
+    """Sixteen keyframes 1 m apart on the floor (camera 0.8 m high) and a loop edge 5 - 15 whose
+    keyframes claim 0.4 m; the robot was confirmed at node 0, the whole map answers node 15 (6 hops)."""
+    from topomap.camera import CameraIntrinsics
+    from topomap.config import BuildConfig, NavigateConfig, ServoConfig
+    from topomap.features import Features
+    from topomap.graph import Edge, EdgeKind, Node, TopoMap
+    from topomap.relative_motion import META_KEY, PairMotion, _stamp
+
+    size = (160, 120)
+    m = TopoMap(camera=CameraIntrinsics.default(*size), config=BuildConfig())
+    for i in range(16):
+        m.add_node(Node(i, 0, i, f"k{i:03d}.png", Features.empty("orb", size), np.zeros((6, 8), np.uint8)))
+
+    def record(metres):
+        pair = PairMotion(0.0, (), 0.2, metres / 0.8).to_json()
+        return {"version": 1, "a_in_b": pair, "b_in_a": pair}
+
+    for a in range(15):
+        m.add_edge(Edge(a, a + 1, EdgeKind.SEQUENTIAL, 300, 0.6, 10.0, relative_motion=record(1.0)))
+    m.add_edge(Edge(5, 15, EdgeKind.LOOP, 60, 0.3, 5.0, relative_motion=record(0.4)))
+    m.meta[META_KEY] = {"version": 1, "geometry": _stamp(ServoConfig().geometry)}
+
+    class Robot:
+        camera = CameraIntrinsics.default(*size)
+        camera_height_m = 0.8
+
+        def render(self):
+            return np.full((size[1], size[0]), 128, np.uint8)
+
+        def apply(self, command, dt):
+            pass
+
+    nav = Navigator(m, Robot(), config=NavigateConfig(**config), localizer=_LookAlikeFar(15))
+    nav._here = nav._last_good = 0
+    nav._confirmed = (0, nav._commanded_m)
+    return nav
+
+
+def test_a_far_answer_out_of_reach_of_the_robot_s_motion_is_refused():
+    """Held-out world 200 ep 1: lost near node 72, the whole map answered the goal at 1.00 twice
+    (17.7 m away, a stretch of look-alike photographs), and the goal "arrived". A far answer is now
+    taken only within the slack plus twice the distance commanded since the last confirmation,
+    along the map's edges on the floor, a loop edge costing the slack more (a look-alike fakes it)."""
+    nav = _chain_navigator()
+    msg = [e.message for e in nav._relocalize()][-1]
+    assert "kept the last good node" in msg and nav._here == 0, msg
+    assert nav._tried["far answers out of reach"] >= 2
+    assert f"refused {nav._tried['far answers out of reach']:.0f} far answers out of reach" in nav._tried_summary()
+    assert nav._within_reach(3) and not nav._within_reach(4)  # 3 m of slack along the chain
+    # 1.5 m driven since: a reach of 6 m; node 15 is 5 m along the chain and 0.4 m through the loop
+    # edge, which costs the slack more (8.4 m): refused
+    nav = _chain_navigator()
+    nav._commanded_m += 1.5
+    assert not nav._within_reach(15) and nav._within_reach(6)
+    # 4 m driven since: 3 + 2 x 4 = 11 m reaches it
+    nav = _chain_navigator()
+    nav._commanded_m += 4.0
+    msg = [e.message for e in nav._relocalize()][-1]
+    assert nav._here == 15 and "second look" in msg, msg
+    # no reach: the far answer is taken at the second look, as before
+    nav = _chain_navigator(recover_reach_slack_m=None)
+    assert [e.message for e in nav._relocalize()][-1].startswith("at node 15")
+
+
+def test_recover_reach_options_are_checked():
+    from topomap.config import NavigateConfig
+    from topomap.errors import ConfigError
+
+    for bad in ({"recover_reach_slack_m": -1.0}, {"recover_reach_factor": 0.0}):
+        with pytest.raises(ConfigError, match="recover_reach"):
+            NavigateConfig(**bad)

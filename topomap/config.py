@@ -702,6 +702,14 @@ class NavigateConfig:
     # An answer farther away is taken only if its calibrated confidence reaches this and a second
     # look (after a scan step) answers the same place (within one hop).
     recover_far_confidence: float = 0.9
+    # ... and only within reach: at most recover_reach_slack_m plus recover_reach_factor x the distance
+    # the robot was commanded to drive (disturbance compensation included) since the track was last
+    # confirmed (a node verified with switch_min_inliers), along the map's edges measured on the floor
+    # (their keyframes' distance at the camera height). Look-alikes of a whole stretch pass both checks
+    # above; the robot's own motion does not (docs/navigation.md). The factor covers slip and a
+    # disturbance its compensation missed; None: no reach (nor without a camera height).
+    recover_reach_slack_m: float | None = 3.0
+    recover_reach_factor: float = 2.0
     # The start: an answer below LocalizeConfig.min_confidence is taken when it has at least
     # start_verified_confidence and the servo's geometry confirms it twice: its relative pose has at
     # least switch_min_inliers inliers in the frame, verifies again (the match's min_inliers) after a
@@ -753,6 +761,8 @@ class NavigateConfig:
             raise ConfigError("navigate start_search_step_m must be >= 0 and start_search_speed_mps positive")
         if self.recover_backoff_s < 0 or self.recover_local_hops < 0:
             raise ConfigError("navigate recover_backoff_s and recover_local_hops must be >= 0")
+        if (self.recover_reach_slack_m is not None and not self.recover_reach_slack_m >= 0) or not self.recover_reach_factor > 0:
+            raise ConfigError("navigate recover_reach_slack_m must be >= 0 (or None) and recover_reach_factor positive")
         if self.recover_scale_tolerance is not None and not self.recover_scale_tolerance >= 1.0:
             raise ConfigError("navigate recover_scale_tolerance must be >= 1 (a factor of the scene's scale)")
 

@@ -94,7 +94,7 @@ from topomap.camera import CameraIntrinsics
 from topomap.config import LocalizeConfig, NavigateConfig, PlanConfig, ServoConfig
 from topomap.errors import NoRouteError
 from topomap.features import Features
-from topomap.graph import TopoMap
+from topomap.graph import EdgeKind, TopoMap
 from topomap.localize import Localization, Localizer, Query
 from topomap.matching import Verification, scene_scale, verify
 from topomap.motion import STOP, Command, VehicleKind, vehicle_kind, wrap_angle
@@ -370,6 +370,11 @@ class Navigator:
         self._here: int | None = None  # the node the robot was last localized at
         self._approach_side: float | None = None  # side of the subgoal camera the robot comes from
         self._last_good: int | None = None  # the last node that verified well
+        # (node, distance commanded by then) where the track was last confirmed: what bounds how far
+        # away the robot can be since
+        self._confirmed: tuple[int, float] | None = None
+        self._commanded_m = 0.0  # distance commanded so far (translation, compensation included) [m]
+        self._floor_graph: nx.Graph | None = None  # the map's edges weighted by their floor length
         # commands sent since the last good verification (what backing off inverts)
         self._trail: deque[Command] = deque(maxlen=self._periods(self.config.recover_backoff_s))
         self._tried: dict[str, float] = {}  # what recovery did, for the final message
@@ -408,6 +413,7 @@ class Navigator:
             self._trail.append(command)
         report = self.robot.apply(command, dt)
         self._time += dt
+        self._commanded_m += math.hypot(command.v_f, command.v_h) * dt
         self._last_command = command
         self.outcome.steps += 1
         contact = getattr(report, "collided", False) is True
@@ -607,6 +613,7 @@ class Navigator:
                 self._here = int(start_node)
             out.start_node = self._here
             self._last_good = self._here
+            self._confirmed = (self._here, self._commanded_m)
             route = self._plan(self._here, goal)
             out.route = tuple(route.nodes)
             yield NavEvent(EventKind.PLANNED, self._time, f"route of {route.hops} hops: {list(route.nodes)}",
@@ -698,6 +705,7 @@ class Navigator:
             self._estimate = s.disturbance
             if v.inliers >= cfg.switch_min_inliers and s.status is not ServoStatus.LOST:
                 self._last_good = sub
+                self._confirmed = (sub, self._commanded_m)
                 self._trail.clear()
             out.final_estimate_m = s.position_error_m
             out.final_heading_estimate_deg = math.degrees(s.heading_error_rad) if math.isfinite(s.heading_error_rad) else math.nan
@@ -765,7 +773,7 @@ class Navigator:
                                   f"tried: {self._tried_summary()}; {max(0.0, left):.0f} s of {budget_s:.0f} s left)")
                 self._hold()
                 if fooled:  # the goal "verified" at a look-alike place: no ground to back off to
-                    self._last_good = None
+                    self._last_good = self._confirmed = None
                 yield from self._recover()
                 new = self._plan(self._here, goal)
                 if out.replans <= cfg.max_replans:
@@ -825,7 +833,8 @@ class Navigator:
 
     def _relocalize(self) -> Iterator[NavEvent]:
         """Re-localize after a loss, turning in place to search: prefer a verified node near the last
-        good one; take a far answer only confident and confirmed by a second look; after a full
+        good one; take a far answer only confident, within reach of where the track was last confirmed
+        (:meth:`_within_reach`) and confirmed by a second look; after a full
         turn with neither, keep the last good node (or the last localization)."""
         cfg, min_inliers = self.config, self.map.config.match.min_inliers
         near = self._near(self._last_good)
@@ -854,6 +863,9 @@ class Navigator:
                 found = (loc.node, f"confidence {loc.confidence:.2f}")
                 break
             confident = loc.localized and (loc.confidence >= cfg.recover_far_confidence or not loc.calibrated)
+            if confident and not self._within_reach(loc.node):
+                self._count("far answers out of reach")
+                confident = False
             if confident and far is not None and (far == loc.node or far in self.map.neighbours(loc.node)):
                 found = (loc.node, f"confidence {loc.confidence:.2f}, confirmed by a second look")
                 self._count("far re-localizations")
@@ -865,6 +877,7 @@ class Navigator:
         self._hold()
         if turned > 0:
             self._count("searched", math.degrees(turned))
+        confirmed = found is not None  # a weak near node or the last good one confirms nothing
         if found is None:
             if best_local is not None:
                 found = (best_local[1], f"best near node {self._last_good} ({best_local[0]} inliers)")
@@ -874,8 +887,33 @@ class Navigator:
             else:
                 raise _Failed(NavStatus.FAILED, "could not localize in the map after a full turn")
         self._count("re-localizations")
+        if confirmed:
+            self._confirmed = (found[0], self._commanded_m)
         self._here = found[0]
         yield NavEvent(EventKind.LOCALIZED, self._time, f"at node {found[0]} ({found[1]})", subgoal=found[0])
+
+    def _within_reach(self, node: int) -> bool:
+        """Whether the robot can be at ``node``: within ``recover_reach_slack_m`` plus
+        ``recover_reach_factor`` x the distance it was commanded to drive since the track was last
+        confirmed, along the map's edges measured on the floor from the node it was confirmed at.
+        An edge its keyframes cannot measure counts as no distance (a turn in place; the reach errs
+        towards taking the answer); a loop edge counts the slack more: it is appearance's claim of one
+        place, which a stretch of look-alikes fakes (held-out world 200: 10 m measured through them
+        for 18 m driven). True when nothing bounds it: no confirmation, no camera height."""
+        cfg = self.config
+        if cfg.recover_reach_slack_m is None or self._confirmed is None or self._camera_height_m is None:
+            return True
+        if self._floor_graph is None:
+            lengths = self.pairs.floor_lengths_m(self._camera_height_m)
+            g = nx.Graph()
+            g.add_nodes_from(self.map.nodes)
+            g.add_weighted_edges_from(
+                (a, b, lengths.get((a, b), 0.0) + (0.0 if e.kind is EdgeKind.SEQUENTIAL else cfg.recover_reach_slack_m))
+                for (a, b), e in self.map.edges.items())
+            self._floor_graph = g
+        at, since = self._confirmed
+        reach = cfg.recover_reach_slack_m + cfg.recover_reach_factor * (self._commanded_m - since)
+        return node in nx.single_source_dijkstra_path_length(self._floor_graph, at, cutoff=reach)
 
     def _nearest_verified(self, q: Query, local: Localization) -> tuple[int, int, float]:
         """Of the near nodes the localizer shortlisted, the one the robot is at. Among those that verify
@@ -910,6 +948,8 @@ class Navigator:
             parts.append(f"turned {t['searched']:.0f} deg in place searching")
         if "re-localizations" in t:
             parts.append(f"re-localized {t['re-localizations']:.0f} times ({t.get('far re-localizations', 0):.0f} far)")
+        if "far answers out of reach" in t:
+            parts.append(f"refused {t['far answers out of reach']:.0f} far answers out of reach")
         if "blocked by contact" in t:
             parts.append(f"reversed out of contact {t['blocked by contact']:.0f} times")
         if "back-offs ended by contact" in t:

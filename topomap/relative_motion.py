@@ -186,6 +186,17 @@ class KeyframePairs:
             self._views[key] = (tuple(normals), scale)
         return self._views[key]
 
+    def floor_lengths_m(self, camera_height_m: float) -> dict[tuple[int, int], float]:
+        """Each edge's length on the floor [m]: the median over its two directions of the keyframes'
+        distance in the camera-height convention times ``camera_height_m``; edges whose keyframes give
+        no such distance are left out. Read from the edges' records (computed where a map has none)."""
+        out: dict[tuple[int, int], float] = {}
+        for a, b in self.map.edges:
+            rho = [p.rho_floor_s for p in (self.motion(a, b), self.motion(b, a)) if p is not None and p.rho_floor_s is not None]
+            if rho:
+                out[(a, b)] = camera_height_m * float(np.median(rho))
+        return out
+
     def motion(self, a: int, b: int) -> PairMotion | None:
         """Keyframe ``a`` seen from keyframe ``b``; None when they do not verify."""
         if (a, b) not in self._cache:
