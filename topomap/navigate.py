@@ -64,8 +64,10 @@ test or the bumper reports the way blocked, the navigator stops and
 2. re-localizes, turning in place to search (the estimated drift cancelled in translation as well as
    yaw, as when holding still: a turn under a forward bias otherwise wanders into walls): a node
    within ``recover_local_hops`` of that node that verifies is preferred; an answer farther away is
-   taken only at ``recover_far_confidence`` (when calibrated) and confirmed by a second look (a
-   single frame of a look-alike place is not enough); after a full turn without either, it keeps the
+   taken only at ``recover_far_confidence`` (when calibrated), confirmed by a second look (a
+   single frame of a look-alike place is not enough) and within reach of the distance the robot was
+   commanded to drive since its track was last confirmed (a stretch of look-alikes answers twice;
+   the robot's own motion bounds where it can be); after a full turn without either, it keeps the
    last node that verified well (after a look-alike fooled the goal's settle test there is none: it
    re-localizes globally);
 3. penalises the edge it was following and re-plans.
@@ -898,8 +900,8 @@ class Navigator:
         confirmed, along the map's edges measured on the floor from the node it was confirmed at.
         An edge its keyframes cannot measure counts as no distance (a turn in place; the reach errs
         towards taking the answer); a loop edge counts the slack more: it is appearance's claim of one
-        place, which a stretch of look-alikes fakes (held-out world 200: 10 m measured through them
-        for 18 m driven). True when nothing bounds it: no confirmation, no camera height."""
+        place, which a stretch of look-alikes fakes (docs/navigation.md, "Far answers within reach").
+        True when nothing bounds it: no confirmation, no camera height."""
         cfg = self.config
         if cfg.recover_reach_slack_m is None or self._confirmed is None or self._camera_height_m is None:
             return True
