@@ -783,20 +783,28 @@ def test_contact_blocked_steps_must_be_positive():
         NavigateConfig(contact_blocked_steps=0)
 
 
-class _FoundAfterMoving:
-    """A localizer that recognises nothing until the robot has driven ``after_m`` forward (a start
-    facing a view the map cannot tell, a place it can a step away), then node 2 at 0.95."""
+class _StubLocalizer:
+    """What the navigator asks of a localizer besides its answers: a config and featureless queries."""
 
-    def __init__(self, robot, after_m):
+    def __init__(self):
         from topomap.config import LocalizeConfig
 
-        self.robot, self.after_m, self.config = robot, after_m, LocalizeConfig()
+        self.config = LocalizeConfig()
 
     def prepare(self, image, words=True):
         from topomap.features import Features
         from topomap.localize import Query
 
         return Query(image, Features.empty("orb", image.shape[::-1]), np.zeros(0, np.float32))
+
+
+class _FoundAfterMoving(_StubLocalizer):
+    """A localizer that recognises nothing until the robot has driven ``after_m`` forward (a start
+    facing a view the map cannot tell, a place it can a step away), then node 2 at 0.95."""
+
+    def __init__(self, robot, after_m):
+        super().__init__()
+        self.robot, self.after_m = robot, after_m
 
     def localize_query(self, q, exclude=()):
         from topomap.localize import Localization, LocalizationStatus
@@ -828,20 +836,13 @@ def test_a_start_that_finds_nothing_moves_and_scans_again():
     assert "full turns and" in ev.message and 0.5 * cfg.time_budget_base_s < ev.time_s <= 0.75 * cfg.time_budget_base_s + 1.0, ev
 
 
-class _LookAlikeFar:
+class _LookAlikeFar(_StubLocalizer):
     """A localizer for which no near node ever verifies, while the whole map answers ``node`` at
     0.99 (a stretch of look-alike photographs metres away, held-out world 200 ep 1)."""
 
     def __init__(self, node):
-        from topomap.config import LocalizeConfig
-
-        self.node, self.config = node, LocalizeConfig()
-
-    def prepare(self, image, words=True):
-        from topomap.features import Features
-        from topomap.localize import Query
-
-        return Query(image, Features.empty("orb", image.shape[::-1]), np.zeros(0, np.float32))
+        super().__init__()
+        self.node = node
 
     def localize_query(self, q, exclude=()):
         from topomap.localize import Localization, LocalizationStatus
