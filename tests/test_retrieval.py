@@ -114,6 +114,31 @@ def test_binary_vocabulary_is_deterministic_for_a_seed(orb_feats, orb_vocab):
     assert len(np.unique(w)) > 0.5 * orb_vocab.size  # words are used, not collapsed onto a few
 
 
+class _Counted:
+    """An array-like chunk that counts how often it is read (as build_index's lazy descriptors)."""
+
+    def __init__(self, a):
+        self.a, self.reads = a, 0
+
+    def __len__(self):
+        return len(self.a)
+
+    def __array__(self, dtype=None, copy=None):
+        self.reads += 1
+        return self.a
+
+
+@pytest.mark.parametrize("max_samples", [500, 10**6])
+def test_a_vocabulary_trained_from_chunks_is_the_one_of_their_concatenation(orb_feats, max_samples):
+    chunks = [f.descriptors for f in orb_feats.values()]
+    whole = Vocabulary.train(np.concatenate(chunks), "orb", 100, seed=5, max_samples=max_samples)
+    lazy = [_Counted(c) for c in chunks]
+    parts = Vocabulary.train(lazy, "orb", 100, seed=5, max_samples=max_samples)
+    a, b = whole.to_arrays(), parts.to_arrays()
+    assert a.keys() == b.keys() and all(a[k].tobytes() == b[k].tobytes() for k in a)
+    assert all(c.reads <= 1 for c in lazy)  # each chunk read once at most, lengths need no read
+
+
 def test_binary_quantize_is_the_greedy_tree_walk(orb_feats, orb_vocab):
     desc = orb_feats[12].descriptors[:120]
     np.testing.assert_array_equal(orb_vocab.quantize(desc), greedy_words(orb_vocab, desc))

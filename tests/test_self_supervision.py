@@ -145,6 +145,16 @@ def test_the_map_goes_to_the_workers_once_not_with_every_share(walk_map):
     assert max(ex.task_bytes) < 4000 < map_bytes / 100  # a share is node ids and the configuration
 
 
+def test_a_big_map_is_calibrated_here_not_copied_to_every_worker(walk_map, monkeypatch):
+    import topomap.self_supervision as ss
+
+    monkeypatch.setattr(ss, "PARALLEL_MAX_NODES", len(walk_map.nodes) - 1)
+    ex = RecordingExecutor()
+    cal = calibrate_map(fresh(walk_map), queries=12, seed=3, executor=ex)
+    assert ex.shared_bytes == [] and ex.task_bytes == []  # nothing shipped
+    assert cal == calibrate_map(fresh(walk_map), queries=12, seed=3)
+
+
 def test_the_same_calibration_on_dask(walk_map):
     with DaskExecutor(None, 2, processes=False) as ex:
         cal = calibrate_map(fresh(walk_map), queries=12, seed=3, executor=ex)

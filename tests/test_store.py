@@ -28,6 +28,7 @@ from topomap.config import BuildConfig, FeatureConfig
 from topomap.errors import DatasetError, MapFormatError, NodeNotFoundError
 from topomap.features import Features
 from topomap.graph import Edge, EdgeKind, FrameRecord, Node, TopoMap
+from topomap.spill import as_bytes
 from topomap.store import (
     SCHEMA_VERSION,
     check_writable,
@@ -80,8 +81,8 @@ def test_round_trip_preserves_everything(built):
         # as the build encoded it
         assert b.thumbnail.shape == n.thumbnail.shape
         assert np.abs(b.thumbnail.astype(int) - n.thumbnail).mean() < 6  # a noise texture: JPEG's worst case
-        assert n.image is None and n.image_data[:2] == b"\xff\xd8"  # kept encoded during the build
-        np.testing.assert_array_equal(b.image, decode_image(n.image_data, "image"))
+        assert n.image is None and as_bytes(n.image_data)[:2] == b"\xff\xd8"  # kept encoded during the build
+        np.testing.assert_array_equal(b.image, decode_image(as_bytes(n.image_data), "image"))
         assert b.descriptor.dtype == np.float32 and b.descriptor.tobytes() == n.descriptor.tobytes()
     assert back.edges == m.edges
     assert back.frames == m.frames
@@ -101,7 +102,7 @@ def test_load_without_images_and_node_image(built):
     m, path = built
     light = load_map(path)
     assert all(n.image is None for n in light.nodes.values())
-    np.testing.assert_array_equal(load_node_image(path, 1), decode_image(m.nodes[1].image_data, "image"))
+    np.testing.assert_array_equal(load_node_image(path, 1), decode_image(as_bytes(m.nodes[1].image_data), "image"))
     with pytest.raises(NodeNotFoundError, match="node 99"):
         load_node_image(path, 99)
 
@@ -109,7 +110,7 @@ def test_load_without_images_and_node_image(built):
 def test_png_images_round_trip_exactly_and_jpeg_within_its_error(built, tmp_path):
     m, _ = built
     src = next(iter(m.nodes.values()))
-    image = decode_image(src.image_data, "image")
+    image = decode_image(as_bytes(src.image_data), "image")
     for fmt, tol in (("png", 0), ("jpeg", 6)):
         cfg = BuildConfig(features=FeatureConfig(max_features=500), image_format=fmt, image_quality=75)
         one = TopoMap(camera=m.camera, config=cfg)

@@ -52,6 +52,7 @@ from topomap.matching import Verification, verify
 from topomap.parallel import Executor, InlineExecutor
 from topomap.calibration import CALIBRATION_KEY, Calibration
 from topomap.relative_motion import annotate_edges
+from topomap.spill import Spill
 from topomap.retrieval import (
     THUMBNAIL_PATCH,
     THUMBNAIL_SIZE,
@@ -386,6 +387,7 @@ def build_map(
     input_size: list[tuple[int, int] | None] = [None]
     # (x, y): verify(x, y) of the new edges, inliers only (_for_motion), for the motion stage
     verified: dict[tuple[int, int], Verification] = {}
+    spill = Spill()  # the new keyframes' features and images wait on disk until the map is saved
 
     # the first readable frame (read here) fixes the working size of a new map
     head_frames, first = _first_readable(iter(seq), config)
@@ -407,10 +409,10 @@ def build_map(
         if config.store_images:
             from topomap.store import encode_image
 
-            image_data = encode_image(c.image, config.image_format, config.image_quality)
+            image_data = spill.put_bytes(encode_image(c.image, config.image_format, config.image_quality))
         tmap.add_node(
             Node(
-                id=nid, sequence=sequence_id, frame_id=rec.id, source=rec.source, features=c.features,
+                id=nid, sequence=sequence_id, frame_id=rec.id, source=rec.source, features=spill.put_features(c.features),
                 thumbnail=make_thumbnail(c.image, config.thumbnail_px), image_data=image_data,
                 descriptor=thumbnail_descriptor(c.image, descriptor_size(*work_size), DESCRIPTOR_PATCH),
             )
@@ -563,21 +565,37 @@ def build_index(tmap: TopoMap, on_progress: Callable[[BuildProgress], None] | No
     _report(on_progress, "index", 0, 1, tmap)
     index_global_descriptors(tmap)
     feats = {n.id: n.features for n in tmap.nodes.values()}
-    desc = [f.descriptors for f in feats.values() if len(f)]
-    if sum(len(d) for d in desc) < MIN_INDEX_DESCRIPTORS:
+    desc = [_LazyDescriptors(f) for f in feats.values() if len(f)]  # read when sampled, not all at once
+    total = sum(len(d) for d in desc)
+    if total < MIN_INDEX_DESCRIPTORS:
         tmap.index = None
         return None
     cfg = tmap.config
-    desc = np.concatenate(desc)
     mapper = None
     if executor is not None and executor.workers > 1:
         def mapper(fn, items):
             return executor.map(fn, items, window=2 * executor.workers)
-    voc = Vocabulary.train(desc, cfg.features.kind, vocabulary_size(len(desc), cfg.vocabulary_words), cfg.seed,
+    voc = Vocabulary.train(desc, cfg.features.kind, vocabulary_size(total, cfg.vocabulary_words), cfg.seed,
                            mapper=mapper)
     tmap.index = BowIndex.build(voc, feats)
     _report(on_progress, "index", 1, 1, tmap)
     return tmap.index
+
+
+class _LazyDescriptors:
+    """A node's descriptors, read only when made an array (a fresh build's are on disk:
+    :mod:`topomap.spill`); its length needs no read."""
+
+    __slots__ = ("features",)
+
+    def __init__(self, features: Features):
+        self.features = features
+
+    def __len__(self) -> int:
+        return len(self.features)
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        return np.asarray(self.features.descriptors, dtype)
 
 
 def calibrate(tmap: TopoMap, on_progress: Callable[[BuildProgress], None] | None = None, *,

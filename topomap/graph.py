@@ -51,11 +51,13 @@ class Node:
 
     ``id``: node id (0..); ``sequence``: which build run created it (0 = first build, 1 = first
     ``--append`` ...); ``frame_id``: the :class:`FrameRecord` whose image is the keyframe;
-    ``source``: that image's file name; ``features``: its local features at the working resolution;
+    ``source``: that image's file name; ``features``: its local features at the working resolution
+    (a fresh build's are :class:`topomap.spill.SpilledFeatures`, read from disk when used);
     ``thumbnail``: (h, w) uint8; ``image``: (H, W) uint8 keyframe at the working resolution, or
     ``None`` when not stored; ``descriptor``: (D,) float32 whole-image descriptor or ``None``;
     ``image_data``: the keyframe image already encoded as the map stores it (JPEG/PNG bytes: a build
-    keeps these rather than pixels, 5-10x less memory) or ``None``;
+    keeps these rather than pixels, 5-10x less memory, on disk as :class:`topomap.spill.SpilledBytes`:
+    read them with :func:`topomap.spill.as_bytes`) or ``None``;
     ``pose_gt``: ground-truth pose, used only for plots and scoring — never by localization or
     navigation.
     """
@@ -69,7 +71,7 @@ class Node:
     image: np.ndarray | None = None
     descriptor: np.ndarray | None = None
     pose_gt: tuple[float, ...] | None = None
-    image_data: bytes | None = None
+    image_data: bytes | None = None  # or a topomap.spill.SpilledBytes
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,7 @@ Everything serialises to plain numpy arrays (``to_arrays`` / ``from_arrays``), n
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -73,6 +74,18 @@ def _kmeans_job(item: tuple[np.ndarray, int, int, bool]) -> tuple[np.ndarray, np
     return _kmeans(x, k, seed)
 
 
+def _gather_rows(chunks: Sequence[np.ndarray], rows: np.ndarray) -> np.ndarray:
+    """Rows ``rows`` (sorted) of the concatenation of ``chunks``, reading each chunk once (a chunk
+    may be read from disk: :class:`topomap.spill.SpilledFeatures`)."""
+    ends = np.cumsum([len(c) for c in chunks])
+    which = np.searchsorted(ends, rows, side="right")
+    parts = []
+    for i in np.unique(which):
+        chunk = np.asarray(chunks[i])
+        parts.append(chunk[rows[which == i] - (ends[i] - len(chunk))])
+    return np.concatenate(parts)
+
+
 @dataclass(frozen=True)
 class Vocabulary:
     """A vocabulary tree.
@@ -101,18 +114,24 @@ class Vocabulary:
 
     # ------------------------------------------------------------------ training
     @classmethod
-    def train(cls, descriptors: np.ndarray, kind: str, words: int = 4096, seed: int = 0,
+    def train(cls, descriptors: np.ndarray | Sequence, kind: str, words: int = 4096, seed: int = 0,
               max_samples: int = 200_000, mapper=None) -> Vocabulary:
-        """Tree with about ``words`` leaves from (N, D) descriptors (subsampled to ``max_samples``);
+        """Tree with about ``words`` leaves from (N, D) descriptors (subsampled to ``max_samples``),
+        or from a sequence of array-likes (``len`` and ``np.asarray``) taken as their concatenation,
+        which is never made: a big map's descriptors are read one node at a time and only the
+        sampled rows kept (the same rows, the same tree);
         ``mapper(fn, items)``: an ordered parallel map (``Executor.map``) for the independent
         k-means runs of each level's clusters — the same tree with any mapper."""
         det = detector(kind)
-        n = len(descriptors)
+        chunks = [descriptors] if isinstance(descriptors, np.ndarray) else descriptors
+        n = sum(len(c) for c in chunks)
         if n < 2:
             raise ValueError("a vocabulary needs at least two descriptors")
         rng = np.random.default_rng(seed)
         if n > max_samples:
-            descriptors = descriptors[np.sort(rng.choice(n, max_samples, replace=False))]
+            descriptors = _gather_rows(chunks, np.sort(rng.choice(n, max_samples, replace=False)))
+        elif not isinstance(descriptors, np.ndarray):
+            descriptors = np.concatenate([np.asarray(c) for c in chunks])
         words = max(2, min(int(words), len(descriptors)))
         depth = 1 if words <= 64 else (2 if words <= 4096 else 3)
         k = max(2, math.ceil(words ** (1.0 / depth)))

@@ -48,6 +48,7 @@ from topomap.images import decode_image
 from topomap.localize import Localizer, SequenceLocalizer, sequence_evidence
 from topomap.parallel import Executor, worker_local
 from topomap.photometric import apply_photometric, random_photometric
+from topomap.spill import as_bytes
 
 __all__ = ["calibrate_map", "calibrate_on_queries", "CalibrationSamples", "single_samples", "keyframe_samples", "keyframe_rng", "keyframe_image",
            "viewpoint_change", "experience_labels", "experience_queries", "experience_sample"]
@@ -67,6 +68,10 @@ NOT_CALIBRATED = "not calibrated"
 EXPERIENCE_SPAN = 8
 #: Other-experience samples per calibration, at most this many times ``queries`` (a seeded sample).
 EXPERIENCE_SAMPLES = 2
+#: Maps of more nodes are calibrated in this process even when workers are at hand: each worker would
+#: hold a copy of the whole map (~130 KB a node with its localizer), to share ~240 queries that take
+#: seconds beside the minutes such a build takes (docs/build.md, "Memory").
+PARALLEL_MAX_NODES = 1000
 
 
 class CalibrationSamples:
@@ -102,7 +107,7 @@ def keyframe_image(tmap: TopoMap, node_id: int) -> np.ndarray | None:
         return n.image
     if n.image_data is not None:
         w, h = tmap.working_size
-        return decode_image(n.image_data, max_pixels=w * h, max_size=(w, h), formats=("PNG", "JPEG"),
+        return decode_image(as_bytes(n.image_data), max_pixels=w * h, max_size=(w, h), formats=("PNG", "JPEG"),
                             what=f"the image of node {node_id}")
     return None
 
@@ -331,14 +336,15 @@ def calibrate_map(tmap: TopoMap, *, queries: int = 60, seed: int = 0, config: Lo
     """Fit the map's :class:`~topomap.calibration.Calibration` and store it in ``tmap.meta``.
 
     ``queries`` keyframes (a seeded sample) give three or four samples each; with ``executor`` their
-    queries run on its workers (the same calibration at any worker count). Raises
+    queries run on its workers (the same calibration at any worker count) when the map has at most
+    :data:`PARALLEL_MAX_NODES` nodes. Raises
     :class:`CalibrationError` when the map has no keyframe images (``--no-images``) or too few nodes
     to learn from.
     """
     cfg = dataclasses.replace(config or LocalizeConfig(), use_calibration=False)
     chosen, reference = _keyframe_reference(tmap, queries, seed)
     experience = experience_queries(tmap, queries, seed)
-    if executor is not None and executor.workers > 1:
+    if executor is not None and executor.workers > 1 and len(tmap.nodes) <= PARALLEL_MAX_NODES:
         # the workers build the localizers: one here as well would hold a second index of the map
         mode, single = _parallel_samples(tmap, cfg, reference, chosen, seed, executor, experience)
     else:

@@ -64,6 +64,7 @@ from topomap.errors import ConfigError, DatasetError, MapConflictError, MapForma
 from topomap.features import Features, detector
 from topomap.graph import Edge, EdgeKind, FrameRecord, Node, TopoMap
 from topomap.images import MAX_WORKING_SIDE_PX, decode_image, display_name
+from topomap.spill import as_bytes
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -390,7 +391,7 @@ def _node_images(n: Node, cfg: BuildConfig) -> tuple[bytes, bytes | None]:
     """The thumbnail and keyframe image bytes of a node in the map's format (the keyframe image as
     the build encoded it, if it did)."""
     thumb = encode_image(n.thumbnail, cfg.image_format, cfg.thumbnail_quality)
-    image = getattr(n, "image_data", None)
+    image = as_bytes(getattr(n, "image_data", None))
     if image is None and n.image is not None:
         image = encode_image(n.image, cfg.image_format, cfg.image_quality)
     return thumb, image
