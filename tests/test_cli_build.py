@@ -622,6 +622,7 @@ def test_no_images_and_image_quality(runner, cli_app, walk, tmp_path):
     assert a["feature"] == b["feature"] and a["edge"] == b["edge"] and a["array"] == b["array"]
 
 
+@pytest.mark.slow  # the corridor built, then 111 labelled queries localized twice (~80 s)
 def test_index_calibrates_on_labelled_queries_and_refuses_half_an_option(runner, cli_app, tmp_path):
     root = dataset("corridor")
     m = tmp_path / "c.topomap"
