@@ -62,7 +62,7 @@ def baseline(paths: list[Path], config: BuildConfig) -> float:
     return time.perf_counter() - t0
 
 
-def _cpu_seconds(pids: list[int]) -> float:
+def cpu_seconds(pids: list[int]) -> float:
     """CPU seconds (user + system) the given processes have used so far (Linux ``/proc``; 0 elsewhere)."""
     total = 0.0
     for pid in pids:
@@ -88,7 +88,7 @@ def timed_build(source: Path, config: BuildConfig, camera, workers: int) -> tupl
     t0, c0 = time.perf_counter(), time.process_time()
     with make_executor(workers) as ex:
         m = build_map(source, config, camera, on_progress=on_progress, executor=ex)
-        cpu = {"driver": time.process_time() - c0, "workers": _cpu_seconds(getattr(ex, "worker_pids", list)())}
+        cpu = {"driver": time.process_time() - c0, "workers": cpu_seconds(getattr(ex, "worker_pids", list)())}
     t1 = time.perf_counter()
     # each stage runs from the end of the previous one to its own last report
     stages, prev = {}, t0

@@ -86,6 +86,8 @@ def render_frames(cache: Path, frames: int) -> Path:
 
 # ----------------------------------------------------------------------------- one build (child process)
 def build_one(listing: Path, workers: int | None, out_json: Path) -> None:
+    sys.path.insert(0, str(HERE))
+    from bench_build import cpu_seconds  # the workers' CPU from /proc, as bench_build.py reads it
     from topomap.build import BuildProgress, build_map
     from topomap.parallel import make_executor
     from topomap.store import save_map
@@ -94,7 +96,7 @@ def build_one(listing: Path, workers: int | None, out_json: Path) -> None:
     pids: list[int] = []
 
     def cpu_now() -> float:
-        return time.process_time() + _cpu_seconds(pids)
+        return time.process_time() + cpu_seconds(pids)
 
     def on_progress(p: BuildProgress) -> None:
         if p.stage == "loops":
@@ -129,17 +131,6 @@ def build_one(listing: Path, workers: int | None, out_json: Path) -> None:
         "executor": desc,
     }))
 
-
-def _cpu_seconds(pids: list[int]) -> float:
-    """CPU seconds (user + system) the given processes have used so far (Linux ``/proc``; 0 elsewhere)."""
-    total = 0.0
-    for pid in pids:
-        try:
-            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    return total
 
 
 def _peak_rss_mb(pid: int) -> float:
