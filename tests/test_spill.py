@@ -79,3 +79,21 @@ def test_a_built_map_holds_its_new_keyframes_on_disk_and_saves_the_same_rows(tmp
         assert type(b.features) is Features  # a loaded map holds plain arrays
         assert b.features.descriptors.tobytes() == n.features.descriptors.tobytes()
         assert b.features.keypoints.tobytes() == n.features.keypoints.tobytes()
+
+
+def test_a_full_disk_is_one_clear_error(monkeypatch, tmp_path):
+    import os
+
+    from topomap.errors import TopomapError
+
+    spill = Spill(directory=str(tmp_path))
+
+    def full(fd, data, at):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "pwrite", full)
+    with pytest.raises(TopomapError, match=r"cannot hold the build's keyframes on disk in .*No space left.*TMPDIR"):
+        spill.put_bytes(b"x" * 10)
+    monkeypatch.setattr(os, "pwrite", lambda fd, data, at: len(data) - 1)  # a short write: the disk filled up
+    with pytest.raises(TopomapError, match="the disk is full"):
+        spill.put_bytes(b"x" * 10)

@@ -22,6 +22,7 @@ from collections import OrderedDict
 
 import numpy as np
 
+from topomap.errors import TopomapError
 from topomap.features import Features
 
 __all__ = ["Spill", "SpilledFeatures", "SpilledBytes", "as_bytes"]
@@ -29,12 +30,14 @@ __all__ = ["Spill", "SpilledFeatures", "SpilledBytes", "as_bytes"]
 
 class Spill:
     """An append-only temporary file of arrays and byte strings with an LRU of ``working_set`` items
-    read back. ``directory``: where the file is made (default: the system's temporary directory)."""
+    read back. ``directory``: where the file is made (default: the system's temporary directory,
+    ``TMPDIR``); a full disk raises :class:`TopomapError`."""
 
     def __init__(self, working_set: int = 64, directory: str | None = None):
         if working_set < 1:
             raise ValueError("a spill's working set holds at least one item")
-        self._file = tempfile.TemporaryFile(dir=directory)  # unlinked at once: no file is ever left behind
+        self.directory = directory or tempfile.gettempdir()
+        self._file = tempfile.TemporaryFile(dir=self.directory)  # unlinked at once: no file is ever left behind
         self._fd = self._file.fileno()
         self._end = 0
         self._lock = threading.Lock()  # put/read may come from an executor's threads
@@ -49,7 +52,14 @@ class Spill:
     def _write(self, data: bytes | memoryview) -> int:
         with self._lock:
             at = self._end
-            os.pwrite(self._fd, data, at)
+            try:
+                written = os.pwrite(self._fd, data, at)
+            except OSError as e:  # a full disk: say where, and what to do
+                raise TopomapError(f"cannot hold the build's keyframes on disk in {self.directory}: "
+                                   f"{e.strerror or e}; free space there or set TMPDIR to a larger disk") from None
+            if written != len(data):
+                raise TopomapError(f"cannot hold the build's keyframes on disk in {self.directory}: the disk is full; "
+                                   "free space there or set TMPDIR to a larger disk")
             self._end += len(data)
             return at
 
