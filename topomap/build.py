@@ -24,7 +24,8 @@ ahead, in parallel (speculatively: those past a keyframe change are dropped), wh
 same keyframes as one frame at a time.
 
 Memory stays bounded whatever the length of the sequence: frames stream through a window of a few
-per worker; only keyframes are kept (features, thumbnail, descriptor, encoded image).
+per worker; only keyframes are kept (thumbnail and descriptor in memory; features and encoded image
+on disk until the map is saved, :mod:`topomap.spill`).
 
 Loop closure: once all frames are in, a bag-of-words index over the keyframes proposes, for each new
 node, the ``loop_shortlist_k`` most similar nodes (not all pairs); each candidate is verified
