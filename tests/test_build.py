@@ -136,6 +136,7 @@ def test_loop_edges_join_views_of_the_same_place(walk):
 SPARSE_LOOPS = dataclasses.replace(FAST, loop_edges_per_visit=1, loop_revisit_ratio=0.5)
 
 
+@pytest.mark.slow  # builds one or more maps end to end (~8-30 s)
 def test_a_walk_that_never_comes_back_closes_no_loop(tmp_path):
     """Sliding one way along a wall, keyframes 3-7 apart still share the view (like a corridor's far
     end); joining them would be a shortcut, not a loop: the camera never left, every keyframe between
@@ -168,6 +169,7 @@ def _tiled_floor_walk(n: int = 30, step_px: int = 40, period_px: int = 240) -> l
     return frames
 
 
+@pytest.mark.slow  # builds one or more maps end to end (~8-30 s)
 def test_a_repeating_floor_closes_no_loop(tmp_path):
     """Sliding one way over tiles that repeat, every sixth frame sees the floor it saw before: on the
     floor alone the views verify (aliased loop edges, like the simulated offices' 2-18 m ones), but
@@ -204,6 +206,7 @@ def test_one_loop_edge_per_place_seen_again(walk):
     assert nx.shortest_path_length(m.graph, ids[0], ids[-1]) <= 2  # the loop still closes
 
 
+@pytest.mark.slow  # builds one or more maps end to end (~8-30 s)
 def test_determinism(walk):
     folder, _, m = walk
     again = build_map(folder, FAST)
@@ -228,6 +231,7 @@ def test_progress_and_sequence_summary(tmp_path):
 
 
 # ----------------------------------------------------------------------------- --append
+@pytest.mark.slow  # builds one or more maps end to end (~8-30 s)
 def test_append_links_a_second_pass(tmp_path):
     tex = scene(2)
     out = [window(tex, x, y=40.0) for x in range(0, 900, 60)]
@@ -431,6 +435,7 @@ def test_castle_records_the_given_camera(castle):
     assert len(m.frames) == 30 and all(f.node is not None for f in m.frames)
 
 
+@pytest.mark.slow  # builds one or more maps end to end (~8-30 s)
 def test_castle_build_is_deterministic(castle):
     root, m = castle
     again = build_map(root / "images", camera=load_camera(root / "K.txt"))

@@ -295,6 +295,7 @@ def test_interrupted_rebuild_keeps_the_existing_map(runner, cli_app, walk, walk_
     assert files_in(walk_copy.parent) == ["copy.topomap"]  # no temporary or journal file
 
 
+@pytest.mark.slow  # builds one or more maps end to end (~8-30 s)
 def test_failed_append_keeps_the_map(runner, cli_app, walk, walk_copy, monkeypatch):
     before = walk_copy.read_bytes()
     monkeypatch.setattr(store, "_edge_rows", interrupt)  # midway: new nodes and frames already inserted
@@ -411,6 +412,7 @@ def test_index_rebuilds_the_index(runner, cli_app, walk, walk_copy):
     assert rebuilt.keys() == original.keys() and all(np.array_equal(rebuilt[k], original[k]) for k in original)
 
 
+@pytest.mark.slow  # builds one or more maps end to end (~8-30 s)
 def test_append_adds_and_links_a_sequence(runner, cli_app, tmp_path):
     tex = scene(4)
     rng = np.random.default_rng(1)
@@ -608,6 +610,7 @@ def test_dask_local_cluster_builds_the_same_map(runner, cli_app, walk, tmp_path)
     assert map_contents(tmp_path / "dask.topomap") == map_contents(tmp_path / "one.topomap")
 
 
+@pytest.mark.slow  # builds one or more maps end to end (~8-30 s)
 def test_no_images_and_image_quality(runner, cli_app, walk, tmp_path):
     full = build_json(runner, cli_app, walk[0], "-o", tmp_path / "full.topomap", *QUICK, "--workers", "1")
     bare = build_json(runner, cli_app, walk[0], "-o", tmp_path / "bare.topomap", *QUICK, "--workers", "1", "--no-images")

@@ -37,6 +37,7 @@ def test_the_map_remembers_the_teach_world_and_its_conditions(small_map):
     assert taught["source"] == str(folder.resolve())
 
 
+@pytest.mark.slow  # builds one or more maps end to end (~8-30 s)
 def test_a_damaged_or_missing_world_file_is_skipped_and_appending_keeps_the_first(small_map, tmp_path, caplog):
     folder = tmp_path / "teach"
     shutil.copytree(small_map.parent / "teach", folder)

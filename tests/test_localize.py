@@ -543,6 +543,7 @@ def test_fused_on_a_big_map_compares_thumbnails_of_the_bow_best_only(route, seco
 
 
 # ============================================================================= experiences
+@pytest.mark.slow  # builds one or more maps end to end (~8-30 s)
 def test_an_appended_experience_is_linked_and_answers_as_one_place(route, tmp_path):
     """A second traversal under other light, appended: loop closures link it to the first; an answer
     from either experience names the experience and the shared place."""

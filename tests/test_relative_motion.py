@@ -37,6 +37,7 @@ def test_build_stores_both_directions_of_every_edge(walk):
                 assert stored.to_json() == fresh.to_json()
 
 
+@pytest.mark.slow  # builds one or more maps end to end (~8-30 s)
 def test_the_build_verifies_each_edge_once_more_not_twice(tmp_path, monkeypatch):
     """The build's own verification of an edge (keyframing, loop closure) is one of its directions;
     only the other is verified again for the pair's geometry (the records equal fresh ones, above)."""

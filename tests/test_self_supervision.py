@@ -88,6 +88,7 @@ def _chains(m):
     return [[n for n in sorted(m.nodes) if m.nodes[n].sequence == s] for s in (0, 1)]
 
 
+@pytest.mark.slow  # its fixture builds and appends a second walk (~15 s)
 def test_an_appended_keyframe_is_labelled_where_the_joins_around_it_place_it(two_walks):
     a, b = _chains(two_walks)
     m = dataclasses.replace(two_walks, arrays=dict(two_walks.arrays),
@@ -105,6 +106,7 @@ def test_an_appended_keyframe_is_labelled_where_the_joins_around_it_place_it(two
     assert b[3] not in experience_labels(m)
 
 
+@pytest.mark.slow  # its fixture builds and appends a second walk (~15 s)
 def test_an_appended_experience_calibrates_on_its_own_images(two_walks):
     inline, pooled = fresh(two_walks), fresh(two_walks)
     cal = calibrate_map(inline, queries=12, seed=3)
@@ -178,6 +180,7 @@ def _labelled_queries(m, seed: int, n: int):
     return out
 
 
+@pytest.mark.slow  # builds one or more maps end to end (~8-30 s)
 def test_a_calibration_fitted_on_labelled_queries_matches_their_frequency(walk_map):
     m = fresh(walk_map)
     cal = calibrate_on_queries(m, _labelled_queries(m, 0, 40), seed=1)
@@ -217,6 +220,7 @@ def _labelled_walk(m, seed: int, n: int, foreign: int):
     return out
 
 
+@pytest.mark.slow  # builds one or more maps end to end (~8-30 s)
 def test_labelled_queries_in_order_calibrate_the_sequence_confidence_too(walk_map):
     from topomap.localize import SequenceLocalizer, sequence_evidence
 

@@ -124,6 +124,7 @@ def test_png_images_round_trip_exactly_and_jpeg_within_its_error(built, tmp_path
         assert np.abs(back.thumbnail.astype(int) - src.thumbnail).mean() <= tol
 
 
+@pytest.mark.slow  # builds one or more maps end to end (~8-30 s)
 def test_no_images_stores_no_keyframe_image(tmp_path):
     import dataclasses
 
