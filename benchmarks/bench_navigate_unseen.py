@@ -51,7 +51,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_navigate as bench  # noqa: E402  (episode drawing, the per-process map cache)
 
-from topomap.config import NavigateConfig  # noqa: E402
+from topomap.config import NavigateConfig, servo_preset  # noqa: E402
+from topomap.errors import ConfigError  # noqa: E402
 
 METHODS = bench.METHODS
 #: World seeds used for tuning so far; this benchmark refuses them unless --allow-tuning-worlds.
@@ -179,7 +180,8 @@ def run_one(job: dict) -> dict:
             r = replay_episode(m, world, ep["goal"], poses, commands, ep["start_node"], vehicle=ep["vehicle"],
                                disturbance=job["disturbance"], seed=ep["seed"])
         else:
-            servo = servo_preset("default" if job["method"] == "topomap" else "uncompensated")
+            servo = servo_overrides(servo_preset("default" if job["method"] == "topomap" else "uncompensated"),
+                                    job.get("servo"))
             r = run_episode(m, world, ep["goal"], poses, start_pose=tuple(ep["start_pose"]), vehicle=ep["vehicle"],
                             disturbance=job["disturbance"], seed=ep["seed"], servo_config=servo, localizer=loc,
                             navigate_config=NavigateConfig(time_budget_s_per_hop=job["budget_per_hop"]),
@@ -325,6 +327,23 @@ def print_table(summary: dict, title: str, wall_s: float | None = None) -> None:
           + (f"; total wall time {wall_s / 60:.1f} min)" if wall_s is not None else ")"))
 
 
+def servo_overrides(base, spec: str | None):
+    """``base`` with the ``key=number,...`` of ``spec`` (ServoConfig fields; an ablation such as
+    ``pose_window=1``)."""
+    import dataclasses
+
+    if not spec:
+        return base
+    values = {}
+    for item in spec.split(","):
+        key, _, val = item.partition("=")
+        field = {f.name: f for f in dataclasses.fields(base)}.get(key.strip())
+        if field is None or not _ or field.type not in ("int", "float", int, float):
+            raise ValueError(f"--servo item {item!r} must be a numeric ServoConfig field, key=value")
+        values[key.strip()] = (int if field.type in ("int", int) else float)(val)
+    return dataclasses.replace(base, **values)
+
+
 def _job_key(job: dict) -> str:
     return json.dumps(job, sort_keys=True)
 
@@ -356,6 +375,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--budget-per-hop", type=float, default=10.0, help="time budget: 60 s + this per route hop [s]")
     ap.add_argument("--baseline-every", type=int, default=1,
                     help="run the (slow) uncompensated servo on every N-th episode only (paired; 1: all)")
+    ap.add_argument("--servo", default=None,
+                    help="servo settings over the presets, key=value,... (an ablation, e.g. pose_window=1)")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--seed", type=int, default=16, help="seed of the episode draw")
     ap.add_argument("--cache", type=Path, default=None, help="folder for texture sets, teach runs and maps (reused)")
@@ -384,6 +405,10 @@ def main(argv: list[str] | None = None) -> int:
     for spec in (args.conditions, args.teach_conditions):
         parse_conditions(spec)
     parse_disturbance(args.disturbance)
+    try:
+        servo_overrides(servo_preset("default"), args.servo)
+    except (ValueError, ConfigError) as e:
+        ap.error(str(e))
     cache = args.cache or Path(tempfile.mkdtemp(prefix="bench_unseen_"))
     cache.mkdir(parents=True, exist_ok=True)
     log = args.log or (args.json.with_suffix(".jsonl") if args.json else cache / "run.jsonl")
@@ -412,7 +437,8 @@ def main(argv: list[str] | None = None) -> int:
                     if m == "uncompensated" and (k * len(maps) + w) % max(1, args.baseline_every):
                         continue
                     jobs.append({"map": str(path), "episode": eps[k], "method": m, "disturbance": args.disturbance,
-                                 "budget_per_hop": args.budget_per_hop, "conditions": args.conditions})
+                                 "budget_per_hop": args.budget_per_hop, "conditions": args.conditions,
+                                 **({"servo": args.servo} if args.servo else {})})
         keys = {_job_key(r["job"]) for r in done}
         rows = list(done)
         futures = [pool.submit(run_one, job) for job in jobs if _job_key(job) not in keys]

@@ -511,6 +511,9 @@ class ServoConfig:
     undock_radius_m: float = 0.25  # ... and leave it beyond this one [m]
     position_tol_m: float = 0.03  # converged: estimated distance below this [m] ...
     heading_tol_deg: float = 1.5  # ... and |heading error| below this [deg]
+    # the laws see the median of the last pose_window poses, each moved on by the motion predicted
+    # since it was measured (facing a close wall one image's position scatters by ~0.1 m); 1 = raw
+    pose_window: int = 5
 
     def __post_init__(self) -> None:
         for name in ("max_speed_mps", "max_turn_rps", "nominal_scale_m", "gamma", "k_alpha", "h", "k_p", "k_theta"):
@@ -522,6 +525,8 @@ class ServoConfig:
         object.__setattr__(self, "unicycle_law", parse_unicycle_law(self.unicycle_law))
         if self.undock_radius_m < self.dock_radius_m:
             raise ConfigError("undock_radius_m must be at least dock_radius_m")
+        if isinstance(self.pose_window, bool) or not isinstance(self.pose_window, int) or self.pose_window < 1:
+            raise ConfigError(f"servo pose_window={self.pose_window!r} must be a whole number of images >= 1")
 
 
 SERVO_PRESETS: dict[str, ServoConfig] = {

@@ -42,6 +42,8 @@ def test_round_trip_through_json(name):
         (dict(k_i=-1.0), "k_i"),
         (dict(unicycle_law="pid"), "choose one of: aicardi, scale_free"),
         (dict(dock_radius_m=0.3, undock_radius_m=0.1), "undock_radius_m"),
+        (dict(pose_window=0), "pose_window"),
+        (dict(pose_window=2.5), "pose_window"),
     ],
 )
 def test_bad_values_are_rejected(kwargs, message):

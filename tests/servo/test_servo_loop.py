@@ -10,10 +10,12 @@ import numpy as np
 import pytest
 from servo_synth import CAMERA, disturbance, matches, median_goal_depth, room_points, servo_episode
 
-from topomap.config import SERVO_PRESETS, servo_preset
+from topomap.config import SERVO_PRESETS, ServoConfig, servo_preset
 from topomap.errors import ConfigError
 from topomap.motion import STOP, Command, VehicleKind
 from topomap.servo import AppearanceServo, PoseStatus, ServoStatus
+from topomap.servo.disturbance import DisturbanceEstimate
+from topomap.servo.servo import PoseWindow
 
 POINTS = room_points(np.random.default_rng(7))
 GOAL = (0.5, -0.3, 0.2)
@@ -160,3 +162,56 @@ def test_retarget_with_a_heading_prior_turns_toward_an_unseen_goal():
     assert out.status is ServoStatus.LOST and out.command.omega < -0.3
     servo.retarget()
     assert servo.step(none, none, CAMERA, 0.1, Command()).command.omega == pytest.approx(0.0, abs=0.05)
+
+
+def test_the_pose_window_ignores_a_jump_and_follows_the_motion():
+    """One image's pose off by metres (a close wall) does not reach the laws; a robot driving at
+    0.3 m/s is followed without lag (each held pose is moved on by the predicted motion)."""
+    est = DisturbanceEstimate(kappa=1.0 / 3.0)  # scaled units of 3 m
+    window = PoseWindow(5)
+    drive = Command(0.3, 0.0, 0.0)
+    seen = []
+    for k in range(12):
+        window.predict(drive, est, 0.1)
+        x = -1.0 + 0.01 * k  # 0.3 m/s = 0.1 scaled/s
+        measured = x + (2.5 if k == 8 else 0.0)  # one reconstruction 7.5 m off
+        seen.append(window.add(measured, 0.0, 0.0)[0] - x)
+    assert max(abs(e) for e in seen) < 1e-9
+    # a turn is followed as well, and poses older than the window are forgotten
+    window.clear()
+    for k in range(8):
+        window.predict(Command(0.0, 0.0, 0.5), est, 0.1)
+        theta = 0.05 * k
+        assert abs(window.add(0.0, 0.0, theta)[2] - theta) < 1e-9
+    assert len(window._poses) == 5
+
+
+def test_a_window_of_one_is_the_raw_pose():
+    window = PoseWindow(1)
+    est = DisturbanceEstimate(kappa=1.0 / 3.0)
+    for x in (0.4, 3.0, -2.0):
+        window.predict(Command(0.3, 0.0, 0.2), est, 0.1)
+        assert window.add(x, 0.1, 0.2) == (x, 0.1, 0.2)
+
+
+def test_one_image_from_elsewhere_is_reported_but_does_not_steer():
+    """The step reports each image's own measurement (arrival tests count images as independent
+    witnesses), while the command comes from the window's median pose: an image that puts the robot
+    a metre off for one period turns nothing."""
+    rng = np.random.default_rng(3)
+    here, elsewhere = in_world((-0.8, 0.1, 0.05)), in_world((-1.8, -0.9, 0.05))
+    runs = {}
+    for window in (1, 5):
+        servo = AppearanceServo("omni", ServoConfig(pose_window=window))
+        cmd, outs = STOP, []
+        for k in range(6):
+            cp, gp, _ = matches(POINTS, elsewhere if k == 5 else here, GOAL, rng, noise_px=0.2)
+            outs.append(servo.step(cp, gp, CAMERA, 0.1, cmd))  # cmd not applied: the robot stands still
+            cmd = STOP
+        runs[window] = outs
+    raw, med = runs[1][-1], runs[5][-1]
+    assert abs(med.position_error_s - raw.position_error_s) < 0.02  # the jump is reported as measured
+    assert raw.position_error_s > 1.5 * runs[1][-2].position_error_s
+    before = runs[5][-2].command
+    assert math.hypot(med.command.v_f - before.v_f, med.command.v_h - before.v_h) < 0.02
+    assert math.hypot(raw.command.v_f - before.v_f, raw.command.v_h - before.v_h) > 0.05

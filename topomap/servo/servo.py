@@ -26,19 +26,56 @@ import numpy as np
 from topomap.camera import CameraIntrinsics
 from topomap.config import ServoConfig
 from topomap.errors import ConfigError
-from topomap.motion import STOP, Command, VehicleKind, vehicle_kind
+from topomap.motion import STOP, Command, VehicleKind, vehicle_kind, wrap_angle
 from topomap.servo.homography import choose_plane_solution
 from topomap.servo.pose import PoseStatus, RelativePose
 from topomap.servo.relpose import relative_pose_with_scales
 from topomap.servo.laws import LawState, omni_law, unicycle_law
 from topomap.servo.disturbance import DisturbanceEstimate, DisturbanceObserver
 
-__all__ = ["ServoStatus", "ServoOutput", "AppearanceServo"]
+__all__ = ["ServoStatus", "ServoOutput", "AppearanceServo", "PoseWindow"]
 
 log = logging.getLogger(__name__)
 
 #: While blind (holding or turning toward the goal) speeds stay below this fraction of max_speed_mps.
 BLIND_SPEED_FRACTION = 0.3
+
+
+class PoseWindow:
+    """The median of the relative poses measured in the last ``size`` control periods, each moved on
+    to now by the motion predicted since it was measured: the applied command through the
+    observer's ``kappa``, drift and ``d_omega`` (docs/servo.md, "Pose window"). Facing a close wall
+    one image's scaled position scatters by a tenth of a metre and now and then by metres; the
+    component-wise median of a few predicted poses removes both while the prediction keeps it from
+    lagging the motion. Hand-written: a few lines over a list, no filter library has this window."""
+
+    def __init__(self, size: int):
+        self.size = int(size)
+        self._poses: list[np.ndarray] = []  # (x_s, z_s, theta, age in periods) in the goal frame
+
+    def clear(self) -> None:
+        self._poses.clear()
+
+    def predict(self, applied: Command | None, est: DisturbanceEstimate, dt: float) -> None:
+        """Move every held pose by the motion of one period under ``applied``; forget those older
+        than the window."""
+        self._poses = [p for p in self._poses if p[3] + 1 < self.size]
+        kappa = est.kappa if math.isfinite(est.kappa) else 0.0
+        cmd = applied if applied is not None else STOP
+        nu_f, nu_h = kappa * cmd.v_f + est.mu_f, kappa * cmd.v_h + est.mu_h  # scaled, body frame
+        turn = (cmd.omega + est.d_omega) * dt
+        for p in self._poses:
+            c, s = math.cos(p[2]), math.sin(p[2])
+            p += (dt * (c * nu_f - s * nu_h), dt * (s * nu_f + c * nu_h), turn, 1.0)
+
+    def add(self, x_s: float, z_s: float, theta: float) -> tuple[float, float, float]:
+        """Hold this period's measurement; returns the window's median pose."""
+        self._poses.append(np.array([x_s, z_s, theta, 0.0]))
+        if len(self._poses) == 1:
+            return x_s, z_s, theta
+        poses = np.array(self._poses)
+        turns = np.arctan2(np.sin(poses[:, 2] - theta), np.cos(poses[:, 2] - theta))  # about the newest heading
+        return float(np.median(poses[:, 0])), float(np.median(poses[:, 1])), wrap_angle(theta + float(np.median(turns)))
 
 
 class ServoStatus(str, enum.Enum):
@@ -96,6 +133,7 @@ class AppearanceServo:
         # viewpoints pick one (retarget)
         self.wall_normals: tuple[float, ...] = ()
         self.scale_m = self.config.nominal_scale_m  # metres per scaled unit at this goal (best guess)
+        self.window = PoseWindow(self.config.pose_window)
 
     # ------------------------------------------------------------------ lifecycle
     def retarget(self, wall_normals=(), scale_m: float | None = None, heading_prior_rad: float | None = None) -> None:
@@ -114,6 +152,7 @@ class AppearanceServo:
         frame); the omnidirectional integral is expressed in the old goal's frame and restarts.
         """
         self.observer.reset_target(heading_prior_rad)
+        self.window.clear()
         self.wall_normals = tuple(float(n) for n in wall_normals)
         self.scale_m = float(scale_m) if scale_m is not None else self.config.nominal_scale_m
         keep = self.state.integral if self.vehicle is VehicleKind.UNICYCLE else (0.0, 0.0)
@@ -133,6 +172,7 @@ class AppearanceServo:
         self.steps = 0
         self.wall_normals = ()
         self.scale_m = self.config.nominal_scale_m
+        self.window = PoseWindow(self.config.pose_window)
 
     # ------------------------------------------------------------------ one step
     def step(
@@ -160,6 +200,7 @@ class AppearanceServo:
                                                        goal_camera=goal_camera)
         floor_s = rho_floor if rho_floor is not None else math.nan
         pose = choose_plane_solution(pose, self.wall_normals)
+        self.window.predict(last_command, self.observer.estimate, dt)  # the held poses, moved on to now
         if pose.status is PoseStatus.OK:
             x_s, z_s = pose.x_s, pose.z_s
         elif pose.status is PoseStatus.PURE_ROTATION:
@@ -171,14 +212,18 @@ class AppearanceServo:
                                pose.inliers, False, est, floor_s)
         theta = pose.theta
         est = self.observer.update(dt, last_command, theta, pose.position_s if pose.status is PoseStatus.OK else None)
+        # the laws steer by the window's median pose; what the step reports (distance, heading,
+        # convergence) stays this image's measurement: arrival tests count consecutive images as
+        # independent witnesses, which a median's consecutive values are not
+        x_w, z_w, theta_w = self.window.add(x_s, z_s, theta)
         # the laws' metric radii and gains at this goal's scale (the observer keeps its own)
         law_cfg = cfg if self.scale_m == cfg.nominal_scale_m else replace(cfg, nominal_scale_m=self.scale_m)
         if self.vehicle is VehicleKind.UNICYCLE:
             cmd, self.state = unicycle_law(
-                x_s, z_s, theta, law_cfg, self.state, dt, d_omega_hat=est.d_omega, kappa_hat=est.kappa, mu_hat=est.mu_f
+                x_w, z_w, theta_w, law_cfg, self.state, dt, d_omega_hat=est.d_omega, kappa_hat=est.kappa, mu_hat=est.mu_f
             )
         else:
-            cmd, self.state = omni_law(x_s, z_s, theta, law_cfg, self.state, dt, d_omega_hat=est.d_omega)
+            cmd, self.state = omni_law(x_w, z_w, theta_w, law_cfg, self.state, dt, d_omega_hat=est.d_omega)
         rho_s = math.hypot(x_s, z_s)
         dist_m = rho_s * self.scale_m
         converged = dist_m < cfg.position_tol_m and abs(theta) < math.radians(cfg.heading_tol_deg)
@@ -222,3 +267,5 @@ class AppearanceServo:
         if "observer" in changes or "nominal_scale_m" in changes:
             raise ConfigError("the observer settings and the nominal scale cannot change while running; make a new servo")
         self.config = replace(self.config, **changes)
+        if self.config.pose_window != self.window.size:
+            self.window = PoseWindow(self.config.pose_window)
