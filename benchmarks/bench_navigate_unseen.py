@@ -43,7 +43,7 @@ import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict
+from dataclasses import asdict, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +51,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_navigate as bench  # noqa: E402  (episode drawing, the per-process map cache)
 
-from topomap.config import NavigateConfig, servo_preset  # noqa: E402
+from topomap.config import NavigateConfig, preset_with_overrides, servo_preset  # noqa: E402
 from topomap.errors import ConfigError  # noqa: E402
 
 METHODS = bench.METHODS
@@ -328,20 +328,21 @@ def print_table(summary: dict, title: str, wall_s: float | None = None) -> None:
 
 
 def servo_overrides(base, spec: str | None):
-    """``base`` with the ``key=number,...`` of ``spec`` (ServoConfig fields; an ablation such as
-    ``pose_window=1``)."""
-    import dataclasses
-
+    """``base`` with the ``key=number,...`` of ``spec`` (its numeric ServoConfig fields; an ablation
+    such as ``pose_window=1``), parsed as the conditions and disturbance options are."""
     if not spec:
         return base
+    numeric = {f.name: f.type for f in fields(base) if f.type in ("int", "float")}
+    # the base preset is the method's, named first, so that every item of spec must be key=value
+    _, items = preset_with_overrides("none," + spec, "--servo", {"none": base}, numeric)
     values = {}
-    for item in spec.split(","):
-        key, _, val = item.partition("=")
-        field = {f.name: f for f in dataclasses.fields(base)}.get(key.strip())
-        if field is None or not _ or field.type not in ("int", "float", int, float):
-            raise ValueError(f"--servo item {item!r} must be a numeric ServoConfig field, key=value")
-        values[key.strip()] = (int if field.type in ("int", int) else float)(val)
-    return dataclasses.replace(base, **values)
+    for key, val in items:
+        whole = numeric[key] == "int"
+        try:
+            values[key] = int(val) if whole else float(val)
+        except ValueError:
+            raise ConfigError(f"--servo {key}={val!r} must be {'a whole number' if whole else 'a number'}") from None
+    return replace(base, **values)  # ServoConfig checks the values themselves
 
 
 def _job_key(job: dict) -> str:
@@ -407,7 +408,7 @@ def main(argv: list[str] | None = None) -> int:
     parse_disturbance(args.disturbance)
     try:
         servo_overrides(servo_preset("default"), args.servo)
-    except (ValueError, ConfigError) as e:
+    except ConfigError as e:
         ap.error(str(e))
     cache = args.cache or Path(tempfile.mkdtemp(prefix="bench_unseen_"))
     cache.mkdir(parents=True, exist_ok=True)
