@@ -924,3 +924,29 @@ def test_recover_reach_options_are_checked():
     for bad in ({"recover_reach_slack_m": -1.0}, {"recover_reach_factor": 0.0}):
         with pytest.raises(ConfigError, match="recover_reach"):
             NavigateConfig(**bad)
+
+
+def test_a_loop_closure_that_legs_keep_failing_past_is_distrusted():
+    """Held-out world 157 ep 0: loop closures 57-91 and 58-92 join two walls 10.6 m apart that carry
+    the same photographs; every leg crossing one lost its subgoal beyond, the robot re-localized
+    where the claim put it and every re-plan crossed the pair again, until the give-up. Now the
+    second failed leg past a loop closure (or its twin) makes routes avoid both where they can."""
+    from topomap.config import NavigateConfig
+    from topomap.errors import ConfigError
+
+    nav = _chain_navigator()  # loop closure 5-15 over a chain 0..15
+    assert nav.planner.route(4, 14).nodes == [4, 5, 15, 14]
+    nav._blame_loop_closures([4, 5, 15, 14])  # one failure may be a disturbance
+    assert nav.planner.distrusted == [] and nav.planner.route(4, 14).nodes == [4, 5, 15, 14]
+    nav._blame_loop_closures([3, 4, 5, 6])  # a leg along the chain blames no loop closure
+    assert nav.planner.distrusted == []
+    nav._blame_loop_closures([15, 5])  # crossed the other way: the same claim
+    assert nav.planner.distrusted == [(5, 15)]
+    assert nav.planner.route(4, 14).nodes == list(range(4, 15))
+    assert "distrusted 1 loop closures" in nav._tried_summary()
+    never = _chain_navigator(distrust_loop_after=0)
+    for _ in range(3):
+        never._blame_loop_closures([4, 5, 15, 14])
+    assert never.planner.distrusted == []
+    with pytest.raises(ConfigError, match="distrust_loop_after"):
+        NavigateConfig(distrust_loop_after=-1)

@@ -348,3 +348,43 @@ def test_local_shortcuts_carry_the_taught_direction():
     p = Planner(m)
     assert p.cost(8, 5) == pytest.approx(p.config.reverse_factor * p.cost(5, 8))
     assert p.route(9, 4).nodes == [9, 8, 7, 6, 5, 4]
+
+
+# ----------------------------------------------------------------------------- distrusted loop closures
+def twin_walls() -> TopoMap:
+    """One sequence 0..29 driven around; loop closures 5-25 and 6-26 (a pair claiming one revisit),
+    a short shortcut 10-13 and a manual edge 0-29."""
+    edges = [(i, i + 1, STRONG, 0.0) for i in range(29)] + [(5, 25, STRONG, 0.0), (6, 26, STRONG, 0.0), (10, 13, STRONG, 0.0)]
+    m = make_map(30, edges)
+    m.add_edge(Edge(0, 29, EdgeKind.MANUAL, STRONG, 0.6, 0.0))
+    return m
+
+
+def test_loop_claims_are_long_loop_closures_only():
+    p = Planner(twin_walls())
+    assert p.is_loop_claim(5, 25) and p.is_loop_claim(26, 6)
+    assert not p.is_loop_claim(4, 5)  # driven in the teach run
+    assert not p.is_loop_claim(10, 13)  # tied to the taught chain it skips
+    assert not p.is_loop_claim(0, 29)  # the user's word
+    assert p.loop_cluster(25, 5) == p.loop_cluster(6, 26) == [(5, 25), (6, 26)]
+    assert p.loop_cluster(10, 13) == []
+
+
+def test_a_distrusted_loop_closure_is_crossed_only_where_nothing_else_leads():
+    p = Planner(twin_walls())
+    assert p.route(4, 24).nodes == [4, 5, 25, 24]
+    assert p.distrust(5, 25) == [(5, 25), (6, 26)]  # its twin falls with it
+    assert p.distrusted == [(5, 25), (6, 26)]
+    detour = p.route(4, 24)
+    assert not {(5, 25), (6, 26)} & {(min(e), max(e)) for e in detour.edges}
+    assert math.isfinite(detour.cost) and detour.cost < 1e6
+    # the only way into a dead end stays open: one distrusted edge rather than none
+    m = twin_walls()
+    m.add_node(Node(30, 1, 0, "other/k000.png", Features.empty("orb", SIZE), np.zeros((6, 8), np.uint8)))
+    m.add_edge(Edge(12, 30, EdgeKind.LOOP, STRONG, 0.6, 0.0))
+    q = Planner(m)
+    assert q.is_loop_claim(12, 30) and q.distrust(30, 12) == [(12, 30)]
+    assert q.route(0, 30).nodes[-2:] == [12, 30]
+    q.reset_penalties()
+    assert q.distrusted == [] and q.route(4, 24).nodes == [4, 5, 25, 24]
+    assert Planner(twin_walls()).distrust(10, 13) == []  # not a loop claim: nothing to distrust

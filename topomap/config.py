@@ -694,6 +694,10 @@ class NavigateConfig:
     # Never give up while more than this fraction of the time budget is left (and a route exists):
     # recovery goes on until then, re-planning as often as it takes.
     give_up_budget_fraction: float = 0.25
+    # After this many legs failed past one loop closure (or one claiming the same revisit), routes avoid
+    # those loop closures wherever the map offers another way (Planner.distrust). One failure is
+    # often a disturbance; a false loop between look-alike walls fails every time. 0 never distrusts.
+    distrust_loop_after: int = 2
     # Recovery first drives back along the commands since the last node that verified well (at
     # least switch_min_inliers inliers), at most this long, until that node verifies again [s].
     recover_backoff_s: float = 8.0
@@ -752,6 +756,8 @@ class NavigateConfig:
             raise ConfigError("navigate arrive_image_error must lie in (0, 1) (a fraction of the image width)")
         if self.settle_steps < 1 or self.lost_after_steps < 1 or self.contact_blocked_steps < 1 or self.max_replans < 0:
             raise ConfigError("settle_steps, lost_after_steps and contact_blocked_steps must be >= 1, max_replans >= 0")
+        if self.distrust_loop_after < 0:
+            raise ConfigError("navigate distrust_loop_after must be >= 0 (0: never distrust a loop closure)")
         if not 0 <= self.give_up_budget_fraction < 1 or not 0 <= self.recover_far_confidence <= 1:
             raise ConfigError("navigate give_up_budget_fraction must lie in [0, 1), recover_far_confidence in [0, 1]")
         if not 0 <= self.start_verified_confidence <= 1 or not 0 <= self.arrive_floor_min_fraction <= 1:

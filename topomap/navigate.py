@@ -82,7 +82,7 @@ from __future__ import annotations
 import enum
 import logging
 import math
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from typing import Protocol
@@ -380,6 +380,8 @@ class Navigator:
         # commands sent since the last good verification (what backing off inverts)
         self._trail: deque[Command] = deque(maxlen=self._periods(self.config.recover_backoff_s))
         self._tried: dict[str, float] = {}  # what recovery did, for the final message
+        # (a, b), a < b -> legs that failed after crossing the loop closure or one of its cluster
+        self._loop_failures: Counter[tuple[int, int]] = Counter()
         self._contact_streak = 0  # periods in a row the bumper reported contact
         height = self.config.camera_height_m
         self._camera_height_m = height if height is not None else getattr(robot, "camera_height_m", None)
@@ -767,6 +769,7 @@ class Navigator:
                 prev = nodes[i - 1] if i > 0 else None
                 if prev is not None:
                     self.planner.penalize(prev, sub)
+                self._blame_loop_closures(nodes[:i + 1])
                 yield NavEvent(EventKind.LOST, self._time, f"{why} subgoal {sub}", subgoal=sub, route=tuple(nodes))
                 out.replans += 1
                 left = budget_s - self._time
@@ -786,6 +789,21 @@ class Navigator:
                                route=tuple(leg.nodes))
                 continue
             self._move(s.command, trail=True)
+
+    def _blame_loop_closures(self, travelled: list[int]) -> None:
+        """A leg failed after travelling ``travelled`` (up to the lost subgoal): count one failure
+        against each loop closure it crossed (and their clusters); distrust those that reached
+        ``distrust_loop_after``. A loop closure between look-alike walls (repeated photographs, a
+        symmetric corridor) verifies like a true one, and re-localization then finds the robot where
+        the claim put it, so re-plans cross it again and again: only repeated failure tells."""
+        after = self.config.distrust_loop_after
+        crossed = [(a, b) for a, b in zip(travelled[:-1], travelled[1:]) if a != b and self.planner.is_loop_claim(a, b)]
+        if after <= 0 or not crossed:
+            return
+        self._loop_failures.update({k for a, b in crossed for k in self.planner.loop_cluster(a, b)})
+        for a, b in crossed:
+            if self._loop_failures[(min(a, b), max(a, b))] >= after and (min(a, b), max(a, b)) not in self.planner.distrusted:
+                self._count("loop closures distrusted", len(self.planner.distrust(a, b)))
 
     # ------------------------------------------------------------------ recovery
     def _recover(self) -> Iterator[NavEvent]:
@@ -956,6 +974,8 @@ class Navigator:
             parts.append(f"reversed out of contact {t['blocked by contact']:.0f} times")
         if "back-offs ended by contact" in t:
             parts.append(f"ended {t['back-offs ended by contact']:.0f} back-offs at contact")
+        if "loop closures distrusted" in t:
+            parts.append(f"distrusted {t['loop closures distrusted']:.0f} loop closures")
         if "arrivals the floor refused" in t:
             parts.append(f"took the floor's scale at the goal {t['arrivals the floor refused']:.0f} times")
         return ", ".join(parts) or "nothing"

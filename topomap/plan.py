@@ -12,6 +12,7 @@ the map stores on each :class:`~topomap.graph.Edge` into a cost in *hops* (one e
     route = planner.route(3, 12)        # Route(nodes=[3, 4, ..., 12], edges=[(3, 4), ...], cost, hops)
     planner.penalize(7, 8)              # servoing 7 -> 8 failed: make that edge dearer
     route = planner.route(7, 12)        # avoids (7, 8) when a cheaper alternative exists
+    planner.distrust(57, 91)            # routes through loop closure 57-91 failed: use it only if nothing else leads
 """
 
 from __future__ import annotations
@@ -26,10 +27,14 @@ from topomap.config import BuildConfig, PlanConfig
 from topomap.errors import ConfigError, NodeNotFoundError, NoRouteError
 from topomap.graph import Edge, EdgeKind, TopoMap
 
-__all__ = ["edge_cost", "Route", "Planner"]
+__all__ = ["edge_cost", "Route", "Planner", "DISTRUSTED_COST"]
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
+
+# Added to a distrusted loop closure's cost [hops]: more than any route of verified edges can cost,
+# so routes cross the fewest distrusted edges first and only then compare costs.
+DISTRUSTED_COST = 1e9
 
 
 def edge_cost(edge: Edge, map_config: BuildConfig, plan_config: PlanConfig, working_size: tuple[int, int]) -> float:
@@ -111,6 +116,7 @@ class Planner:
                                  directed=e.kind is EdgeKind.SEQUENTIAL)
         self._prefer_taught_chains()
         self._penalty: dict[tuple[int, int], float] = {}  # (a, b), a < b -> product of failure factors
+        self._distrusted: set[tuple[int, int]] = set()  # (a, b), a < b: loop closures routes avoid if they can
 
     def _prefer_taught_chains(self) -> None:
         """Short shortcuts along one sequence cost at least the taught chain they skip
@@ -164,8 +170,60 @@ class Planner:
         return self.cost(*key)
 
     def reset_penalties(self) -> None:
-        """Forget every penalty: costs are the map's again."""
+        """Forget every penalty and distrust: costs are the map's again."""
         self._penalty.clear()
+        self._distrusted.clear()
+
+    # ------------------------------------------------------------------ loop closures
+    def is_loop_claim(self, a: int, b: int) -> bool:
+        """Whether the edge ``a``-``b`` rests on appearance alone: a loop closure between nodes of
+        different sequences, or of one sequence more than ``chain_shortcut_max_skip`` steps apart.
+        Sequential edges were driven in the teach run, short shortcuts are tied to the taught chain
+        they skip, manual edges are the user's word."""
+        key = self._edge_key(a, b)
+        edge = self.map.edge(*key)
+        if edge is None or edge.kind is not EdgeKind.LOOP:
+            return False
+        na, nb = self.map.nodes[key[0]], self.map.nodes[key[1]]
+        return na.sequence != nb.sequence or key[1] - key[0] > self.config.chain_shortcut_max_skip
+
+    def loop_cluster(self, a: int, b: int) -> list[tuple[int, int]]:
+        """The loop closures that claim the same revisit as ``a``-``b`` (itself included, sorted):
+        the loop-claim edges joining a node within ``chain_shortcut_max_skip`` steps of one end (same
+        sequence) to one within as many of the other. A repeated wall makes several such edges; they
+        stand or fall together."""
+        key = self._edge_key(a, b)
+        if not self.is_loop_claim(*key):
+            return []
+        w = max(self.config.chain_shortcut_max_skip, 1)
+        nodes = self.map.nodes
+
+        def close(x: int, y: int) -> bool:
+            return nodes[x].sequence == nodes[y].sequence and abs(x - y) <= w
+
+        out = []
+        for c, d in self._graph.edges:
+            c, d = min(c, d), max(c, d)
+            if ((close(c, key[0]) and close(d, key[1])) or (close(c, key[1]) and close(d, key[0]))) \
+                    and self.is_loop_claim(c, d):
+                out.append((c, d))
+        return sorted(out)
+
+    def distrust(self, a: int, b: int) -> list[tuple[int, int]]:
+        """Routes that crossed the loop closure ``a``-``b`` kept failing: from now on routes avoid it
+        and the loop closures of its :meth:`loop_cluster` whenever any route avoids them, and cross
+        as few of them as they can otherwise (an appearance-only claim of one place is the likeliest
+        wrong step of a route). Returns the edges distrusted (empty for an edge that is no loop claim)."""
+        cluster = self.loop_cluster(a, b)
+        self._distrusted.update(cluster)
+        if cluster:
+            log.info("loop closures %s distrusted", ", ".join(f"{c}-{d}" for c, d in cluster))
+        return cluster
+
+    @property
+    def distrusted(self) -> list[tuple[int, int]]:
+        """The distrusted loop closures ``(a, b)``, ``a < b``, sorted."""
+        return sorted(self._distrusted)
 
     # ------------------------------------------------------------------ routes
     def route(self, start: int, goal: int) -> Route:
@@ -194,9 +252,12 @@ class Planner:
     # ------------------------------------------------------------------ helpers
     def _weight(self, a: int, b: int, data: dict) -> float | None:
         """Cost of travelling a -> b (networkx passes the node being expanded first)."""
-        w = data["cost"] * self._penalty.get((min(a, b), max(a, b)), 1.0)
+        key = (min(a, b), max(a, b))
+        w = data["cost"] * self._penalty.get(key, 1.0)
         if data.get("directed") and b < a:  # node ids follow the taught order within a sequence
             w *= self.config.reverse_factor
+        if key in self._distrusted:
+            w += DISTRUSTED_COST
         # networkx hides an edge whose weight is None: a closed (infinitely penalised) edge
         return None if math.isinf(w) else w
 
