@@ -180,11 +180,12 @@ def run_one(job: dict) -> dict:
             r = replay_episode(m, world, ep["goal"], poses, commands, ep["start_node"], vehicle=ep["vehicle"],
                                disturbance=job["disturbance"], seed=ep["seed"])
         else:
-            servo = servo_overrides(servo_preset("default" if job["method"] == "topomap" else "uncompensated"),
+            servo = config_overrides(servo_preset("default" if job["method"] == "topomap" else "uncompensated"),
                                     job.get("servo"))
             r = run_episode(m, world, ep["goal"], poses, start_pose=tuple(ep["start_pose"]), vehicle=ep["vehicle"],
                             disturbance=job["disturbance"], seed=ep["seed"], servo_config=servo, localizer=loc,
-                            navigate_config=NavigateConfig(time_budget_s_per_hop=job["budget_per_hop"]),
+                            navigate_config=config_overrides(NavigateConfig(time_budget_s_per_hop=job["budget_per_hop"]),
+                                                            job.get("navigate"), "--navigate"),
                             on_event=on_event, conditions=job["conditions"])
     finally:
         simulator.Simulator.__enter__ = enter
@@ -327,22 +328,23 @@ def print_table(summary: dict, title: str, wall_s: float | None = None) -> None:
           + (f"; total wall time {wall_s / 60:.1f} min)" if wall_s is not None else ")"))
 
 
-def servo_overrides(base, spec: str | None):
-    """``base`` with the ``key=number,...`` of ``spec`` (its numeric ServoConfig fields; an ablation
-    such as ``pose_window=1``), parsed as the conditions and disturbance options are."""
+def config_overrides(base, spec: str | None, option: str = "--servo"):
+    """``base`` with the ``key=number,...`` of ``spec`` (its numeric fields; an ablation such as
+    ``pose_window=1`` of a ServoConfig, ``arrive_floor_max_m=0.12`` of a NavigateConfig), parsed as
+    the conditions and disturbance options are."""
     if not spec:
         return base
     numeric = {f.name: f.type for f in fields(base) if f.type in ("int", "float")}
     # the base preset is the method's, named first, so that every item of spec must be key=value
-    _, items = preset_with_overrides("none," + spec, "--servo", {"none": base}, numeric)
+    _, items = preset_with_overrides("none," + spec, option, {"none": base}, numeric)
     values = {}
     for key, val in items:
         whole = numeric[key] == "int"
         try:
             values[key] = int(val) if whole else float(val)
         except ValueError:
-            raise ConfigError(f"--servo {key}={val!r} must be {'a whole number' if whole else 'a number'}") from None
-    return replace(base, **values)  # ServoConfig checks the values themselves
+            raise ConfigError(f"{option} {key}={val!r} must be {'a whole number' if whole else 'a number'}") from None
+    return replace(base, **values)  # the config checks the values themselves
 
 
 def _job_key(job: dict) -> str:
@@ -378,6 +380,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="run the (slow) uncompensated servo on every N-th episode only (paired; 1: all)")
     ap.add_argument("--servo", default=None,
                     help="servo settings over the presets, key=value,... (an ablation, e.g. pose_window=1)")
+    ap.add_argument("--navigate", default=None,
+                    help="navigator settings, key=value,... (an ablation, e.g. distrust_loop_after=0)")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--seed", type=int, default=16, help="seed of the episode draw")
     ap.add_argument("--cache", type=Path, default=None, help="folder for texture sets, teach runs and maps (reused)")
@@ -407,7 +411,8 @@ def main(argv: list[str] | None = None) -> int:
         parse_conditions(spec)
     parse_disturbance(args.disturbance)
     try:
-        servo_overrides(servo_preset("default"), args.servo)
+        config_overrides(servo_preset("default"), args.servo)
+        config_overrides(NavigateConfig(), args.navigate, "--navigate")
     except ConfigError as e:
         ap.error(str(e))
     cache = args.cache or Path(tempfile.mkdtemp(prefix="bench_unseen_"))
@@ -439,7 +444,8 @@ def main(argv: list[str] | None = None) -> int:
                         continue
                     jobs.append({"map": str(path), "episode": eps[k], "method": m, "disturbance": args.disturbance,
                                  "budget_per_hop": args.budget_per_hop, "conditions": args.conditions,
-                                 **({"servo": args.servo} if args.servo else {})})
+                                 **({"servo": args.servo} if args.servo else {}),
+                                 **({"navigate": args.navigate} if args.navigate else {})})
         keys = {_job_key(r["job"]) for r in done}
         rows = list(done)
         futures = [pool.submit(run_one, job) for job in jobs if _job_key(job) not in keys]

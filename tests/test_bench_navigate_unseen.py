@@ -79,3 +79,17 @@ def test_summary_counts_failures_and_early_give_ups(bench):
     assert s["all"]["arrived"] == 8 and s["all"]["failures"] == {"gave up (lost)": 2}
     assert s["all"]["median_error_m"] == pytest.approx(0.11)
     assert s["gave_up_with_quarter_budget_left"] == 2
+
+
+def test_servo_and_navigate_ablations_parse_like_the_other_options(bench):
+    from topomap.config import ServoConfig
+    from topomap.errors import ConfigError
+
+    nav = bench.config_overrides(bench.NavigateConfig(), "arrive_floor_max_m=0.12,distrust_loop_after=0", "--navigate")
+    assert nav.arrive_floor_max_m == 0.12 and nav.distrust_loop_after == 0
+    assert bench.config_overrides(ServoConfig(), "pose_window=1").pose_window == 1
+    assert bench.config_overrides(ServoConfig(), None) == ServoConfig()
+    with pytest.raises(ConfigError, match="--navigate distrust_loop_after='two' must be a whole number"):
+        bench.config_overrides(bench.NavigateConfig(), "distrust_loop_after=two", "--navigate")
+    with pytest.raises(ConfigError, match="distrust_loop_after"):  # the config's own check
+        bench.config_overrides(bench.NavigateConfig(), "distrust_loop_after=-1", "--navigate")
