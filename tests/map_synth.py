@@ -15,7 +15,7 @@ import numpy as np
 from topomap.config import BuildConfig, FeatureConfig
 
 __all__ = ["scene", "window", "sequence", "out_and_back_x", "write_out_and_back", "write_sequence", "write_video",
-           "FRAME_SIZE", "FAST"]
+           "FRAME_SIZE", "FAST", "SHORT_WALK_PX"]
 
 #: (width, height) of the synthetic frames [px]; >= 480 so the build does not upscale them.
 FRAME_SIZE = (480, 360)
@@ -93,9 +93,14 @@ def out_and_back_x(step_px: int = 60, length_px: int = 1000) -> list[float]:
     return [float(x) for x in out] + [x + 3.0 for x in back]
 
 
-def write_out_and_back(folder: Path, seed: int = 0) -> list[float]:
+#: Length [px] of the short out-and-back walk: 11 frames, 8 keyframes and still loop closures on
+#: the way back, for tests that build the walk several times (the full walk: 34 frames, ~8 s a build).
+SHORT_WALK_PX = 300
+
+
+def write_out_and_back(folder: Path, seed: int = 0, length_px: int = 1000) -> list[float]:
     """Write the out-and-back walk over ``scene(seed)`` into ``folder``; returns each frame's x [px]."""
     tex = scene(seed)
-    xs = out_and_back_x()
+    xs = out_and_back_x(length_px=length_px)
     write_sequence(folder, [window(tex, x, y=40.0) for x in xs])
     return xs

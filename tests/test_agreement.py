@@ -3,21 +3,22 @@
 from __future__ import annotations
 
 import pytest
-from map_synth import FAST, write_out_and_back
+from conftest import walk_map_file
 
 from topomap.agreement import UNRELATED_THUMBNAIL_SAD, GoalAgreement
-from topomap.build import build_map
 from topomap.images import read_image
 from topomap.localize import Localizer
 from topomap.matching import verify
+from topomap.store import load_map
 
 
 @pytest.fixture(scope="module")
 def walk(tmp_path_factory):
-    root = tmp_path_factory.mktemp("agree")
-    write_out_and_back(root / "imgs")
-    m = build_map(root / "imgs", FAST)
-    return m, root / "imgs", Localizer(m)
+    """The whole out-and-back walk (its middle node, at the far end, shares no view with node 1): the
+    session's one build of it (shared with test_build.py), read back from its file."""
+    imgs, path = walk_map_file(tmp_path_factory)
+    m = load_map(path)
+    return m, imgs, Localizer(m)
 
 
 def test_the_keyframe_view_agrees_and_a_distant_one_does_not(walk):

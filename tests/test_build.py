@@ -6,13 +6,14 @@ from __future__ import annotations
 import csv
 import dataclasses
 import logging
+import shutil
 
 import cv2
 import networkx as nx
 import numpy as np
 import pytest
-from conftest import dataset
-from map_synth import FAST, FRAME_SIZE, scene, sequence, window, write_out_and_back, write_sequence, write_video
+from conftest import castle_map_file, corridor_map_file, dataset, walk_map_file
+from map_synth import FAST, FRAME_SIZE, out_and_back_x, scene, sequence, window, write_sequence, write_video
 
 import topomap.build as build_mod
 from topomap.build import MIN_IMAGE_PX, BuildProgress, build_index, build_map
@@ -23,6 +24,7 @@ from topomap.features import extract
 from topomap.graph import EdgeKind, TopoMap
 from topomap.images import open_sequence
 from topomap.matching import verify
+from topomap.store import load_map
 
 
 def snapshot(m: TopoMap) -> tuple:
@@ -52,10 +54,10 @@ def consecutive_nodes_joined(m: TopoMap, sequence: int = 0) -> bool:
 # ----------------------------------------------------------------------------- synthetic walk
 @pytest.fixture(scope="module")
 def walk(tmp_path_factory):
-    """(folder, x positions, map) of the synthetic out-and-back walk, built once."""
-    folder = tmp_path_factory.mktemp("walk")
-    xs = write_out_and_back(folder)
-    return folder, xs, build_map(folder, FAST)
+    """(folder, x positions, map) of the synthetic out-and-back walk: the session's one build of it
+    (shared with test_agreement.py), read back from its file."""
+    folder, path = walk_map_file(tmp_path_factory)
+    return folder, out_and_back_x(), load_map(path)
 
 
 def test_keyframes_and_frame_assignment(walk):
@@ -174,7 +176,7 @@ def test_a_repeating_floor_closes_no_loop(tmp_path):
     """Sliding one way over tiles that repeat, every sixth frame sees the floor it saw before: on the
     floor alone the views verify (aliased loop edges, like the simulated offices' 2-18 m ones), but
     the camera never came back. A loop closure needs inliers off the floor too."""
-    write_sequence(tmp_path, _tiled_floor_walk())
+    write_sequence(tmp_path, _tiled_floor_walk(n=18))  # three tile periods: the floor comes round twice
     m = build_map(tmp_path, FAST)
     assert len(m.nodes) >= 5
     assert [e for e in m.edges.values() if e.kind is EdgeKind.LOOP] == []
@@ -234,10 +236,11 @@ def test_progress_and_sequence_summary(tmp_path):
 @pytest.mark.slow  # builds one or more maps end to end (~8-30 s)
 def test_append_links_a_second_pass(tmp_path):
     tex = scene(2)
-    out = [window(tex, x, y=40.0) for x in range(0, 900, 60)]
+    xs = range(0, 480, 60)  # 8 frames a pass: several keyframes each, one frame width of wall
+    out = [window(tex, x, y=40.0) for x in xs]
     rng = np.random.default_rng(9)  # the second pass: same places, other sensor noise, 20 px lower
     again = [np.clip(window(tex, x + 7, y=60.0) + rng.normal(0, 4, FRAME_SIZE[::-1]), 0, 255).astype(np.uint8)
-             for x in range(0, 900, 60)]
+             for x in xs]
     write_sequence(tmp_path / "a", out)
     write_sequence(tmp_path / "b", again)
     base = build_map(tmp_path / "a", FAST)
@@ -326,15 +329,22 @@ def test_featureless_frames_join_the_last_keyframe_with_features(tmp_path):
     assert consecutive_nodes_joined(m)
 
 
+#: Nordland summer frames built by the appearance-only test: the first quarter of the 1200 (137 of
+#: them under a verification's minimum of keypoints) makes the point in a quarter of the time.
+NORDLAND_FRAMES = 300
+
+
 @pytest.mark.slow
-def test_an_appearance_only_sequence_keeps_its_low_feature_frames():
+def test_an_appearance_only_sequence_keeps_its_low_feature_frames(tmp_path):
     """Nordland's 64x32 frames hold ~23 keypoints, a third of them under a verification's minimum:
     whole-image descriptors recognise them, so they stay places (the blank-paint rule is for maps of
     keypoints)."""
+    for p in sorted((dataset("nordland-64x32") / "summer").glob("*.png"))[:NORDLAND_FRAMES]:
+        shutil.copy(p, tmp_path / p.name)
     quick = dataclasses.replace(BuildConfig(), calibration=CalibrationConfig(enabled=False))  # not what is tested
-    m = build_map(dataset("nordland-64x32") / "summer", quick)
+    m = build_map(tmp_path, quick)
     low = [n for n in m.nodes.values() if len(n.features) < m.config.match.min_inliers]
-    assert len(m.nodes) == 1200 and len(low) > 100
+    assert len(m.nodes) == NORDLAND_FRAMES and len(low) > 100
 
 
 def test_single_image(tmp_path):
@@ -399,15 +409,15 @@ def test_build_index_is_reproducible(walk):
 
 # ----------------------------------------------------------------------------- real data (issue 2)
 @pytest.fixture(scope="module")
-def castle():
-    root = dataset("castle-p30")
-    return root, build_map(root / "images", camera=load_camera(root / "K.txt"))
+def castle(tmp_path_factory):
+    # the session's one castle build (shared with test_parallel.py), read back from its file
+    return dataset("castle-p30"), load_map(castle_map_file(tmp_path_factory))
 
 
 @pytest.fixture(scope="module")
-def corridor():
-    root = dataset("corridor")
-    return build_map(root / "ref")
+def corridor(tmp_path_factory):
+    # the session's one corridor build with the defaults (~30 s), read back from its file
+    return load_map(corridor_map_file(tmp_path_factory))
 
 
 def test_castle_closes_the_loop(castle):

@@ -12,9 +12,9 @@ import cv2
 import networkx as nx
 import numpy as np
 import pytest
-from conftest import assert_error, dataset, tamper
+from conftest import assert_error, corridor_map_file, dataset, tamper
 from fuzz_cases import reseal
-from map_synth import FRAME_SIZE, out_and_back_x, scene, sequence, window, write_out_and_back, write_sequence, write_video
+from map_synth import FRAME_SIZE, SHORT_WALK_PX, out_and_back_x, scene, sequence, window, write_out_and_back, write_sequence, write_video
 from typer.testing import CliRunner
 
 import topomap.build as build_mod
@@ -48,13 +48,17 @@ def interrupt(*args, **kwargs):
     raise KeyboardInterrupt
 
 
+#: Window positions of the walk: the short one (several tests build it again, some three times).
+WALK_X = out_and_back_x(length_px=SHORT_WALK_PX)
+
+
 @pytest.fixture(scope="module")
 def walk(tmp_path_factory):
-    """(image folder, map path) of the synthetic out-and-back walk, built once through the CLI."""
+    """(image folder, map path) of the short synthetic out-and-back walk, built once through the CLI."""
     from topomap_cli.main import app
 
     root = tmp_path_factory.mktemp("cliwalk")
-    write_out_and_back(root / "imgs")
+    write_out_and_back(root / "imgs", length_px=SHORT_WALK_PX)
     result = CliRunner().invoke(app, ["build", str(root / "imgs"), "-o", str(root / "walk.topomap"), *QUICK])
     ok(result)
     return root / "imgs", root / "walk.topomap"
@@ -316,7 +320,7 @@ def test_build_summary_and_info(runner, cli_app, walk):
         assert word in text
     data = info_json(runner, cli_app, path)
     assert {"nodes", "frames", "edges", "edges_by_kind", "components", "features", "schema_version"} <= set(data)
-    assert data["schema_version"] == SCHEMA_VERSION and data["frames"] == len(out_and_back_x())
+    assert data["schema_version"] == SCHEMA_VERSION and data["frames"] == len(WALK_X)
     assert data["edges_by_kind"]["loop"] >= 1 and data["components"] == 1
     assert data["features"]["kind"] == "orb" and data["build_config"]["features"]["max_features"] == 300
     m = load_map(path)
@@ -342,7 +346,7 @@ def test_export_json(runner, cli_app, walk, tmp_path):
         assert {"id", "keyframe", "frames"} <= set(n) and n["keyframe"] == m.nodes[n["id"]].source
         assert n["keyframe"] in n["frames"]
     names = [f for n in data["nodes"] for f in n["frames"]]
-    assert names == [f"img{i}.png" for i in range(len(out_and_back_x()))]  # every frame once, natural order
+    assert names == [f"img{i}.png" for i in range(len(WALK_X))]  # every frame once, natural order
     assert len(data["edges"]) == len(m.edges)
     for e in data["edges"]:
         assert {"source", "target", "kind", "inliers"} <= set(e)
@@ -367,7 +371,7 @@ def test_show_with_and_without_poses(runner, cli_app, walk, tmp_path):
     assert plain is not None and plain.std() > 5
     poses = tmp_path / "poses.csv"
     poses.write_text("image,x,z,theta\n" + "".join(f"img{i}.png,{x / 100:.2f},{0.1 * (i % 2):.1f},0\n"
-                                                   for i, x in enumerate(out_and_back_x())))
+                                                   for i, x in enumerate(WALK_X)))
     ok(runner.invoke(cli_app, ["show", str(walk[1]), "-o", str(tmp_path / "gt.png"), "--poses", str(poses)]))
     gt = cv2.imread(str(tmp_path / "gt.png"))
     assert gt is not None and gt.shape == plain.shape and not np.array_equal(gt, plain)
@@ -416,7 +420,7 @@ def test_index_rebuilds_the_index(runner, cli_app, walk, walk_copy):
 def test_append_adds_and_links_a_sequence(runner, cli_app, tmp_path):
     tex = scene(4)
     rng = np.random.default_rng(1)
-    xs = range(0, 900, 60)
+    xs = range(0, 480, 60)  # 8 frames a pass: several keyframes each, one frame width of wall
     write_sequence(tmp_path / "first", [window(tex, x, y=40.0) for x in xs])
     write_sequence(tmp_path / "second", [np.clip(window(tex, x + 5, y=55.0) + rng.normal(0, 4, FRAME_SIZE[::-1]), 0, 255)
                                          .astype(np.uint8) for x in xs], stem="pass2_")
@@ -625,11 +629,11 @@ def test_no_images_and_image_quality(runner, cli_app, walk, tmp_path):
     assert a["feature"] == b["feature"] and a["edge"] == b["edge"] and a["array"] == b["array"]
 
 
-@pytest.mark.slow  # the corridor built, then 111 labelled queries localized twice (~80 s)
-def test_index_calibrates_on_labelled_queries_and_refuses_half_an_option(runner, cli_app, tmp_path):
+@pytest.mark.slow  # 111 labelled queries localized twice (~25 s)
+def test_index_calibrates_on_labelled_queries_and_refuses_half_an_option(runner, cli_app, tmp_path, tmp_path_factory):
     root = dataset("corridor")
-    m = tmp_path / "c.topomap"
-    ok(runner.invoke(cli_app, ["build", str(root / "ref"), "-o", str(m)]))
+    # the session's corridor map, built as `topomap build ref -o c.topomap` builds it (the defaults)
+    m = Path(shutil.copy(corridor_map_file(tmp_path_factory), tmp_path / "c.topomap"))
     before = m.read_bytes()
     queries, truth = str(root / "query"), str(root / "ground_truth.csv")
     assert_error(runner.invoke(cli_app, ["index", str(m), "--calibrate-on", queries]), "go together")

@@ -12,10 +12,9 @@ import cv2
 import numpy as np
 import pytest
 from conftest import assert_error as cli_error
-from conftest import dataset, tamper
+from conftest import corridor_map_file, dataset, tamper
 from fuzz_cases import reseal
 from map_synth import FRAME_SIZE, scene, window, write_sequence, write_video
-from test_localize import corridor_map_file
 from typer.testing import CliRunner
 
 STEP = 120.0

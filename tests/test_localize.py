@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import dataset
+from conftest import corridor_map_file, dataset
 from map_synth import FRAME_SIZE, scene, window, write_sequence
 
 from topomap.build import build_map
@@ -20,7 +20,7 @@ from topomap.evaluate import evaluate
 from topomap.groundtruth import read_correspondences
 from topomap.images import open_sequence
 from topomap.localize import RECENT_MIN_FRAMES, Localization, LocalizationStatus, Localizer, RecentScores, SequenceLocalizer
-from topomap.store import load_map, save_map
+from topomap.store import load_map
 
 #: Synthetic route: a 6000 px wide textured wall seen every STEP px; with keyframe_min_ratio 0.5
 #: nearly every view becomes a node, so a query taken at a view's position has one right answer.
@@ -341,15 +341,6 @@ def test_an_appearance_only_filter_tells_the_map_from_elsewhere(route, second_pa
 
 
 # ============================================================================= real data: corridor
-def corridor_map_file(tmp_path_factory) -> Path:
-    """The corridor map (built from ref/ with the defaults), built once per test session and shared
-    with tests/test_cli_localize.py through the session's base temporary folder."""
-    path = tmp_path_factory.getbasetemp() / "corridor-map" / "corridor.topomap"
-    if not path.exists():
-        path.parent.mkdir(exist_ok=True)
-        save_map(build_map(dataset("corridor") / "ref"), path)
-    return path
-
 
 @dataclasses.dataclass
 class Corridor:

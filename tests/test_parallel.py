@@ -11,8 +11,8 @@ import sqlite3
 
 import numpy as np
 import pytest
-from conftest import dataset
-from map_synth import FAST, write_out_and_back
+from conftest import castle_map_file, dataset
+from map_synth import FAST, SHORT_WALK_PX, write_out_and_back
 
 from topomap.build import build_map
 from topomap.camera import load_camera
@@ -150,8 +150,9 @@ def map_rows(path) -> dict:
 
 @pytest.fixture(scope="module")
 def walk(tmp_path_factory):
+    """The short out-and-back walk (built three times, on three executors; loop closures included)."""
     folder = tmp_path_factory.mktemp("pwalk")
-    write_out_and_back(folder)
+    write_out_and_back(folder, length_px=SHORT_WALK_PX)
     return folder
 
 
@@ -174,12 +175,12 @@ def test_dask_builds_the_same_map(walk, walk_inline, dask_threads, tmp_path):
 
 
 @pytest.mark.slow
-def test_castle_identical_on_processes_and_a_dask_local_cluster(tmp_path):
+def test_castle_identical_on_processes_and_a_dask_local_cluster(tmp_path, tmp_path_factory):
     """The real-image case, with worker *processes* for Dask too (what ``--dask local`` starts)."""
     root = dataset("castle-p30")
     cam = load_camera(root / "K.txt")
-    rows = []
-    for i, ex in enumerate([InlineExecutor(), ProcessExecutor(2), DaskExecutor(None, 2)]):
+    rows = [map_rows(castle_map_file(tmp_path_factory))]  # the session's castle map, built in one process
+    for i, ex in enumerate([ProcessExecutor(2), DaskExecutor(None, 2)], start=1):
         with ex:
             m = build_map(root / "images", None, cam, executor=ex)
         rows.append(map_rows(save_map(m, tmp_path / f"m{i}.topomap")))

@@ -7,7 +7,7 @@ import dataclasses
 import math
 
 import pytest
-from map_synth import FAST, write_out_and_back
+from map_synth import FAST, SHORT_WALK_PX, write_out_and_back
 
 from topomap.build import build_map
 from topomap.config import RelativePoseConfig
@@ -17,8 +17,9 @@ from topomap.store import load_map, save_map
 
 @pytest.fixture(scope="module")
 def walk(tmp_path_factory):
+    """The short out-and-back walk (sequential and loop edges; each edge's geometry is recomputed below)."""
     root = tmp_path_factory.mktemp("motion")
-    write_out_and_back(root / "imgs")
+    write_out_and_back(root / "imgs", length_px=SHORT_WALK_PX)
     m = build_map(root / "imgs", FAST)
     return m, save_map(m, root / "walk.topomap")
 
@@ -46,7 +47,7 @@ def test_the_build_verifies_each_edge_once_more_not_twice(tmp_path, monkeypatch)
     calls = []
     real = rm.verify
     monkeypatch.setattr(rm, "verify", lambda *a, **k: calls.append(1) or real(*a, **k))
-    write_out_and_back(tmp_path)
+    write_out_and_back(tmp_path, length_px=SHORT_WALK_PX)
     m = build_map(tmp_path, FAST)
     assert m.edges_by_kind()["loop"] > 0 and len(calls) == len(m.edges)
 

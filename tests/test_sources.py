@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from bag_synth import STORAGES, T0_NS, raw_payload, stamp_name, write_bag, write_frames_like_bag
 from conftest import assert_error
-from map_synth import FAST, out_and_back_x, scene, window
+from map_synth import FAST, SHORT_WALK_PX, out_and_back_x, scene, window
 from test_build import snapshot
 
 pytest.importorskip("rosbags", reason="the bags extra (rosbags) is not installed")
@@ -28,11 +28,15 @@ from topomap.sources import MAX_IMAGE_PIXELS, RAW_ENCODINGS, BagSequence, camera
 
 CAMERA = dict(fx=410.0, fy=405.0, cx=241.5, cy=178.0, width=480, height=360, d=[-0.05, 0.01, 0.0, 0.0, 0.0])
 
+#: Window positions of the short out-and-back walk: its return leg still closes loops, and the six
+#: twin maps below build in seconds rather than a minute.
+WALK_X = out_and_back_x(length_px=SHORT_WALK_PX)
+
 
 def walk_frames() -> list[np.ndarray]:
-    """The out-and-back walk of map_synth (34 grey frames; its return leg closes loops)."""
+    """The short out-and-back walk of map_synth (grey frames; its return leg closes loops)."""
     tex = scene(0)
-    return [window(tex, x, y=40.0) for x in out_and_back_x()]
+    return [window(tex, x, y=40.0) for x in WALK_X]
 
 
 def colour(frames: list[np.ndarray]) -> list[np.ndarray]:
@@ -107,7 +111,7 @@ def test_bare_mcap_and_db3_files_read_like_their_folders(twins, tmp_path):
     assert snapshot(build_map(mcap, FAST)) == snapshot(from_bag)
     db3 = next(twins["sqlite3"][0].glob("*.db3"))
     seq = open_sequence(db3)
-    assert seq.kind == "bag" and len(seq) == len(out_and_back_x())
+    assert seq.kind == "bag" and len(seq) == len(WALK_X)
     # a rosbag2 folder that lost its metadata.yaml: its one storage file is read
     lost = tmp_path / "lost"
     lost.mkdir()
@@ -341,7 +345,7 @@ def test_cli_build_localize_and_eval_from_bags(twins, runner, cli_app, tmp_path)
                                 "--json"])
     assert r.exit_code == 0, r.output
     summary = json.loads(r.stdout)
-    assert summary["frames_read"] == len(out_and_back_x()) and summary["nodes"] >= 4
+    assert summary["frames_read"] == len(WALK_X) and summary["nodes"] >= 4
     r = runner.invoke(cli_app, ["info", str(out), "--json"])
     assert json.loads(r.stdout)["sequence_sources"] == [str(bag)]
     # the second storage's bag (same frames in colour) as queries, topic omitted: its only one

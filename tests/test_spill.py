@@ -63,12 +63,12 @@ def test_spilled_bytes():
 
 
 def test_a_built_map_holds_its_new_keyframes_on_disk_and_saves_the_same_rows(tmp_path):
-    from map_synth import FAST, write_out_and_back
+    from map_synth import FAST, SHORT_WALK_PX, write_out_and_back
 
     from topomap.build import build_map
     from topomap.store import load_map, save_map
 
-    write_out_and_back(tmp_path / "walk")
+    write_out_and_back(tmp_path / "walk", length_px=SHORT_WALK_PX)
     m = build_map(tmp_path / "walk", FAST)
     assert m.nodes and all(isinstance(n.features, SpilledFeatures) for n in m.nodes.values())
     assert all(isinstance(n.image_data, SpilledBytes) for n in m.nodes.values())

@@ -19,7 +19,7 @@ import pytest
 from conftest import tamper
 from fuzz_cases import map_signature as map_sig
 from fuzz_cases import reseal
-from map_synth import FAST, write_out_and_back
+from map_synth import FAST, SHORT_WALK_PX, write_out_and_back
 
 import topomap.store as store
 from topomap.build import build_map
@@ -42,9 +42,9 @@ from topomap.store import (
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
-    """(map, path) of the synthetic out-and-back map saved once for this module."""
+    """(map, path) of the short synthetic out-and-back map (loop closures included) saved once for this module."""
     root = tmp_path_factory.mktemp("store")
-    write_out_and_back(root / "imgs")
+    write_out_and_back(root / "imgs", length_px=SHORT_WALK_PX)
     m = build_map(root / "imgs", FAST)
     return m, save_map(m, root / "walk.topomap")
 
@@ -128,7 +128,7 @@ def test_png_images_round_trip_exactly_and_jpeg_within_its_error(built, tmp_path
 def test_no_images_stores_no_keyframe_image(tmp_path):
     import dataclasses
 
-    write_out_and_back(tmp_path / "imgs")
+    write_out_and_back(tmp_path / "imgs", length_px=SHORT_WALK_PX)
     m = build_map(tmp_path / "imgs", dataclasses.replace(FAST, store_images=False))
     path = save_map(m, tmp_path / "m.topomap")
     assert sqlite3.connect(path).execute("SELECT COUNT(*) FROM node WHERE image IS NOT NULL").fetchone() == (0,)

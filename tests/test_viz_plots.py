@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from map_synth import FAST, out_and_back_x, write_out_and_back
+from map_synth import FAST, SHORT_WALK_PX, out_and_back_x, write_out_and_back
 
 from topomap.build import build_map
 from topomap.camera import CameraIntrinsics
@@ -16,8 +16,9 @@ from topomap.viz.plots import _layout
 
 @pytest.fixture(scope="module")
 def walk(tmp_path_factory):
+    """The short out-and-back walk: a graph with sequential and loop edges to draw."""
     folder = tmp_path_factory.mktemp("vizwalk")
-    write_out_and_back(folder)
+    write_out_and_back(folder, length_px=SHORT_WALK_PX)
     return build_map(folder, FAST)
 
 
@@ -35,7 +36,7 @@ def test_plot_map_writes_a_png(walk, tmp_path):
 
 
 def test_plot_uses_ground_truth_positions(walk, tmp_path):
-    xs = out_and_back_x()
+    xs = out_and_back_x(length_px=SHORT_WALK_PX)
     positions = {f"img{i}.png": np.array([x / 100.0, 0.1 * (i % 3)]) for i, x in enumerate(xs)}
     pos, metric = _layout(walk, positions)
     assert metric and all(np.array_equal(pos[n.id], positions[n.source]) for n in walk.nodes.values())
