@@ -660,8 +660,7 @@ class NavigateConfig:
     # Refused, the servo takes the scale the floor measures and keeps approaching. Checked only when
     # at least arrive_floor_min_fraction of the window's frames, or arrive_floor_min_readings of them,
     # measured the floor (a median of 15 readings is as sure in a 20-s window as in a 3-s one).
-    # Floor medians of 0.12-0.15 m came with arrivals ~0.1 m off (docs/navigation.md, "The floor's bound").
-    arrive_floor_max_m: float = 0.12
+    arrive_floor_max_m: float = 0.15
     arrive_floor_min_fraction: float = 0.5
     arrive_floor_min_readings: int = 15
     # A unicycle can also stall further out (heading aligned, no progress, a lateral offset it cannot
