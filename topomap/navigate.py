@@ -797,13 +797,13 @@ class Navigator:
         symmetric corridor) verifies like a true one, and re-localization then finds the robot where
         the claim put it, so re-plans cross it again and again: only repeated failure tells."""
         after = self.config.distrust_loop_after
-        crossed = [(a, b) for a, b in zip(travelled[:-1], travelled[1:]) if a != b and self.planner.is_loop_claim(a, b)]
-        if after <= 0 or not crossed:
+        if after <= 0:
             return
-        self._loop_failures.update({k for a, b in crossed for k in self.planner.loop_cluster(a, b)})
-        for a, b in crossed:
-            if self._loop_failures[(min(a, b), max(a, b))] >= after and (min(a, b), max(a, b)) not in self.planner.distrusted:
-                self._count("loop closures distrusted", len(self.planner.distrust(a, b)))
+        crossed = [(min(a, b), max(a, b)) for a, b in zip(travelled[:-1], travelled[1:]) if self.planner.is_loop_claim(a, b)]
+        self._loop_failures.update({k for key in crossed for k in self.planner.loop_cluster(*key)})
+        for key in crossed:
+            if self._loop_failures[key] >= after and key not in self.planner.distrusted:
+                self._count("loop closures distrusted", len(self.planner.distrust(*key)))
 
     # ------------------------------------------------------------------ recovery
     def _recover(self) -> Iterator[NavEvent]:
