@@ -938,13 +938,11 @@ def test_a_loop_closure_that_legs_keep_failing_past_is_distrusted():
     assert nav.planner.route(4, 14).nodes == [4, 5, 15, 14]
     nav._blame_loop_closures([4, 5, 15, 14])  # one failure may be a disturbance
     assert nav.planner.distrusted == [] and nav.planner.route(4, 14).nodes == [4, 5, 15, 14]
-    assert 15 in nav._near(5)  # recovery's "near the last good node" crosses a trusted loop closure
     nav._blame_loop_closures([3, 4, 5, 6])  # a leg along the chain blames no loop closure
     assert nav.planner.distrusted == []
     nav._blame_loop_closures([15, 5])  # crossed the other way: the same claim
     assert nav.planner.distrusted == [(5, 15)]
     assert nav.planner.route(4, 14).nodes == list(range(4, 15))
-    assert nav._near(5) == set(range(2, 9))  # ... not a distrusted one: its twin is not near
     assert "distrusted 1 loop closures" in nav._tried_summary()
     never = _chain_navigator(distrust_loop_after=0)
     for _ in range(3):

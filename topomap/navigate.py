@@ -846,12 +846,10 @@ class Navigator:
                 break
 
     def _near(self, node: int | None) -> set[int]:
-        """The nodes within ``recover_local_hops`` of ``node`` (empty for None), not across a distrusted
-        loop closure: the twin it joins is exactly where a re-localization must not be taken as near."""
+        """The nodes within ``recover_local_hops`` of ``node`` (empty for None)."""
         if node is None:
             return set()
-        graph = nx.restricted_view(self.map.graph, [], self.planner.distrusted)
-        return set(nx.single_source_shortest_path_length(graph, node, cutoff=self.config.recover_local_hops))
+        return set(nx.single_source_shortest_path_length(self.map.graph, node, cutoff=self.config.recover_local_hops))
 
     def _relocalize(self) -> Iterator[NavEvent]:
         """Re-localize after a loss, turning in place to search: prefer a verified node near the last
