@@ -944,9 +944,18 @@ def test_a_loop_closure_that_legs_keep_failing_past_is_distrusted():
     assert nav.planner.distrusted == [(5, 15)]
     assert nav.planner.route(4, 14).nodes == list(range(4, 15))
     assert "distrusted 1 loop closures" in nav._tried_summary()
+    far = _chain_navigator()  # crossed 7 hops before the loss: passed, not blamed
+    for _ in range(3):
+        far._blame_loop_closures([4, 5, 15, 14, 13, 12, 11, 10, 9, 8])
+    assert far.planner.distrusted == []
+    far._blame_loop_closures([5, 15, 14, 13, 12, 11, 10])  # 6 hops before the loss: blamed
+    far._blame_loop_closures([5, 15, 14, 13, 12, 11, 10])
+    assert far.planner.distrusted == [(5, 15)]
     never = _chain_navigator(distrust_loop_after=0)
     for _ in range(3):
         never._blame_loop_closures([4, 5, 15, 14])
     assert never.planner.distrusted == []
     with pytest.raises(ConfigError, match="distrust_loop_after"):
         NavigateConfig(distrust_loop_after=-1)
+    with pytest.raises(ConfigError, match="distrust_within_hops"):
+        NavigateConfig(distrust_within_hops=0)

@@ -698,6 +698,11 @@ class NavigateConfig:
     # those loop closures wherever the map offers another way (Planner.distrust). One failure is
     # often a disturbance; a false loop between look-alike walls fails every time. 0 never distrusts.
     distrust_loop_after: int = 2
+    # ... counting only loop closures the failed leg crossed within this many hops before the subgoal
+    # it lost: a false claim is exposed where the look-alike stretch it joins ends, a few keyframes on,
+    # while a long leg's earlier crossings were passed (blaming them all distrusted 73 true ones on a
+    # 67-hop route and sent it around the map).
+    distrust_within_hops: int = 6
     # Recovery first drives back along the commands since the last node that verified well (at
     # least switch_min_inliers inliers), at most this long, until that node verifies again [s].
     recover_backoff_s: float = 8.0
@@ -756,8 +761,9 @@ class NavigateConfig:
             raise ConfigError("navigate arrive_image_error must lie in (0, 1) (a fraction of the image width)")
         if self.settle_steps < 1 or self.lost_after_steps < 1 or self.contact_blocked_steps < 1 or self.max_replans < 0:
             raise ConfigError("settle_steps, lost_after_steps and contact_blocked_steps must be >= 1, max_replans >= 0")
-        if self.distrust_loop_after < 0:
-            raise ConfigError("navigate distrust_loop_after must be >= 0 (0: never distrust a loop closure)")
+        if self.distrust_loop_after < 0 or self.distrust_within_hops < 1:
+            raise ConfigError("navigate distrust_loop_after must be >= 0 (0: never distrust a loop closure) "
+                              "and distrust_within_hops >= 1")
         if not 0 <= self.give_up_budget_fraction < 1 or not 0 <= self.recover_far_confidence <= 1:
             raise ConfigError("navigate give_up_budget_fraction must lie in [0, 1), recover_far_confidence in [0, 1]")
         if not 0 <= self.start_verified_confidence <= 1 or not 0 <= self.arrive_floor_min_fraction <= 1:

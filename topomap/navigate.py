@@ -792,14 +792,16 @@ class Navigator:
 
     def _blame_loop_closures(self, travelled: list[int]) -> None:
         """A leg failed after travelling ``travelled`` (up to the lost subgoal): count one failure
-        against each loop closure it crossed (and their clusters); distrust those that reached
+        against each loop closure it crossed within ``distrust_within_hops`` of the loss (and their
+        clusters); distrust those that reached
         ``distrust_loop_after``. A loop closure between look-alike walls (repeated photographs, a
         symmetric corridor) verifies like a true one, and re-localization then finds the robot where
         the claim put it, so re-plans cross it again and again: only repeated failure tells."""
         after = self.config.distrust_loop_after
         if after <= 0:
             return
-        crossed = [(min(a, b), max(a, b)) for a, b in zip(travelled[:-1], travelled[1:]) if self.planner.is_loop_claim(a, b)]
+        recent = travelled[-(self.config.distrust_within_hops + 1):]
+        crossed = [(min(a, b), max(a, b)) for a, b in zip(recent[:-1], recent[1:]) if self.planner.is_loop_claim(a, b)]
         self._loop_failures.update({k for key in crossed for k in self.planner.loop_cluster(*key)})
         for key in crossed:
             if self._loop_failures[key] >= after and key not in self.planner.distrusted:
