@@ -212,11 +212,13 @@ class _Settle:
     agrees within the looser ``settle_patience_image_error``. ``false_arrival`` counts the periods
     in a row the servo believed it had arrived while the image disagreed (a look-alike place).
     ``floor_required`` (the camera height is known and the goal's keyframe shows the floor): an arrival
-    needs the floor measured and agreeing."""
+    needs the floor measured and agreeing. ``patient``: the patient settle may fire (a unicycle; an
+    omnidirectional vehicle can remove any offset, and its stalls resolve: it keeps servoing)."""
 
-    def __init__(self, config: NavigateConfig, floor_required: bool = False):
+    def __init__(self, config: NavigateConfig, floor_required: bool = False, patient: bool = True):
         self.config = config
         self.floor_required = floor_required
+        self.patient = patient
         # (time, estimated distance, heading, distance the floor measures [m] or NaN)
         self.history: list[tuple[float, float, float, float]] = []
         self.converged_streak = 0
@@ -236,7 +238,7 @@ class _Settle:
         self.false_arrival = self.false_arrival + 1 if ((s.converged or stalled) and not image_ok) else 0
         if self.converged_streak >= cfg.settle_steps or (image_ok and stalled):
             return "precise" if self.floor_agrees(cfg.arrive_floor_max_m) else "far"
-        if (self.stalled(cfg.settle_patience_max_m, cfg.settle_patience_s, cfg.settle_patience_progress_m)
+        if (self.patient and self.stalled(cfg.settle_patience_max_m, cfg.settle_patience_s, cfg.settle_patience_progress_m)
                 and loosely_agrees()):
             return "settled" if self.floor_agrees(cfg.settle_patience_max_m, cfg.settle_patience_s) else "far"
         return None
@@ -674,7 +676,8 @@ class Navigator:
         leg.settle = self._new_settle(leg.nodes[-1])
 
     def _new_settle(self, goal: int) -> _Settle:
-        return _Settle(self.config, floor_required=self._camera_height_m is not None and self.shows_floor(goal))
+        return _Settle(self.config, floor_required=self._camera_height_m is not None and self.shows_floor(goal),
+                       patient=self.vehicle is VehicleKind.UNICYCLE)
 
     def shows_floor(self, node: int) -> bool:
         """Whether ``node``'s keyframe shows the floor the arrival check measures. A view filled by a
