@@ -663,7 +663,7 @@ class NavigateConfig:
     arrive_floor_max_m: float = 0.15
     arrive_floor_min_fraction: float = 0.5
     arrive_floor_min_readings: int = 15
-    # A unicycle can also stall further out (heading aligned, no progress, a lateral offset it cannot
+    # A unicycle (only) can also stall further out (heading aligned, no progress, a lateral offset it cannot
     # remove without manoeuvres that lose the view). Aligned within settle_patience_max_m and
     # changing less than settle_patience_progress_m over settle_patience_s (medians of the window's
     # halves), it settles there if the image agrees within settle_patience_image_error (a looser
