@@ -490,13 +490,8 @@ def test_only_a_unicycle_settles_patiently():
         return next((a for ti in t if (a := s.update(ti, slow, False, lambda: True)) is not None), None)
 
     assert first(True) == "settled" and first(False) is None
-    assert _frozen_navigator_settle("omni") is False and _frozen_navigator_settle("unicycle") is True
-
-
-def _frozen_navigator_settle(vehicle):
-    """Whether a navigator of ``vehicle`` builds patient settles."""
-    nav, _ = _blind_navigator(vehicle)
-    return nav._new_settle(0).patient
+    assert _blind_navigator("unicycle")[0]._new_settle(0).patient is True
+    assert _blind_navigator("omni")[0]._new_settle(0).patient is False
 
 
 def test_the_floor_is_required_only_where_the_goal_keyframe_shows_one():
