@@ -796,9 +796,10 @@ class Navigator:
     def _blame_loop_closures(self, travelled: list[int]) -> None:
         """A leg failed after travelling ``travelled`` (up to the lost subgoal): count one failure
         against each loop closure it crossed within ``distrust_within_hops`` of the loss (and their
-        clusters); distrust those that reached ``distrust_loop_after``. A loop closure between look-alike walls (repeated photographs, a
-        symmetric corridor) verifies like a true one, and re-localization then finds the robot where
-        the claim put it, so re-plans cross it again and again: only repeated failure tells."""
+        clusters); distrust those that reached ``distrust_loop_after``. A loop closure between
+        look-alike walls (repeated photographs, a symmetric corridor) verifies like a true one, and
+        re-localization then finds the robot where the claim put it, so re-plans cross it again and
+        again: only repeated failure tells."""
         after = self.config.distrust_loop_after
         if after <= 0:
             return
