@@ -15,6 +15,17 @@ up to the scale ``lambda``; the actuators add unknown disturbances ``u_eff = (1 
   gives the observable ratio ``r = (v + d_v) / e`` of the scale-free law. A Kalman filter over the
   parameters ``(kappa, mu_f, mu_h)``.
 
+The heading's measurement noise is not one number: a view with near texture resolves the heading to
+a tenth of a degree, a deep corridor view near its goal scatters it by degrees between two
+reconstructions (a small turn and a small sideways step move distant points alike). A filter that
+assumes the first noise under the second turns every scatter into a ``d_omega`` that the law then
+"compensates", spinning the camera away from the view (docs/servo.md, "Heading noise"). The scaled
+positions scatter the same way (by a metre, now and then, at a goal 0.1 m away), and a drift read
+from them shifts every pose the servo's window predicts. So each filter's measurement noise is the
+larger of the configured one and the noise measured over its last ``noise_window`` images
+(:class:`_NoiseMeter`: second differences, so that neither a varying disturbance nor the filter's
+lag counts as noise; their median, so that one wrong reconstruction in a few moves it not at all).
+
 The forward disturbance itself is rejected by integral action in the laws.
 Hand-written 2- and 3-state Kalman filters (a few lines of numpy; no library needed for this size).
 """
@@ -22,6 +33,7 @@ Hand-written 2- and 3-state Kalman filters (a few lines of numpy; no library nee
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,6 +68,44 @@ class DisturbanceEstimate:
         return math.isfinite(self.d_omega_std) and self.d_omega_std < 0.1
 
 
+#: Deviation of one measurement per median size of its second differences, a scalar (1 / (0.6745 sqrt 6)) ...
+SECOND_DIFFERENCE_TO_STD = 0.6053
+#: ... and a 2-D point (per axis; the median length of a 2-D Gaussian is 1.1774 deviations: 1 / (1.1774 sqrt 6)).
+SECOND_DIFFERENCE_TO_STD_2D = 0.3467
+
+
+class _NoiseMeter:
+    """The noise of a measured sequence from the median size of its second differences, with the
+    commanded motion taken out of each step: a slowly varying disturbance cancels in them, and the
+    filter's own lag does not enter (its innovations would count that as noise too, and a filter
+    that trusts its measurements less lags more). Hand-written: a few lines over a deque."""
+
+    def __init__(self, window: int, to_std: float):
+        self.window, self.to_std = int(window), float(to_std)
+        self._last_step: np.ndarray | None = None
+        self._sizes: deque[float] = deque(maxlen=max(1, self.window))
+
+    def clear(self) -> None:
+        """Another view: another noise."""
+        self._last_step = None
+        self._sizes.clear()
+
+    def add(self, step: np.ndarray | None) -> None:
+        """The next step between consecutive measurements less the commanded motion; None when a
+        measurement is missing (the differences restart)."""
+        if step is not None and self._last_step is not None:
+            self._sizes.append(float(np.linalg.norm(step - self._last_step)))
+        self._last_step = None if step is None else np.asarray(step, float)
+
+    def variance(self, floor: float) -> float:
+        """``floor`` or the measured variance, whichever is larger (the floor until three second
+        differences are held, and always with a window of 0)."""
+        if self.window == 0 or len(self._sizes) < 3:
+            return floor
+        sd = self.to_std * float(np.median(self._sizes))
+        return max(floor, sd * sd)
+
+
 class DisturbanceObserver:
     """Kalman filters over ``(theta, d_omega)`` and ``(kappa, mu_f, mu_h)``; see the module docstring.
 
@@ -71,11 +121,14 @@ class DisturbanceObserver:
         self._has_theta = False
         self._prior_only = False  # theta is a prediction for a new goal, not yet measured
         self._rejected = 0
+        self._heading_noise = _NoiseMeter(self.cfg.noise_window, SECOND_DIFFERENCE_TO_STD)
         # forward filter: p = [kappa, mu_f, mu_h]
         self._p = np.array([self.kappa0, 0.0, 0.0])
         self._Pp = np.diag([(0.5 * self.kappa0) ** 2, (0.05 * self.kappa0) ** 2, (0.05 * self.kappa0) ** 2])
+        self._position_noise = _NoiseMeter(self.cfg.noise_window, SECOND_DIFFERENCE_TO_STD_2D)
         self._last_pos: np.ndarray | None = None
         self._last_theta: float | None = None
+        self._last_heading: float | None = None  # the last measured heading (for the noise meter)
 
     # ------------------------------------------------------------------ lifecycle
     def reset_target(self, theta_prior: float | None = None) -> None:
@@ -89,8 +142,10 @@ class DisturbanceObserver:
         self._x[0] = math.nan
         self._P[0, :] = self._P[:, 0] = 0.0
         self._P[0, 0] = 1.0
-        self._last_pos, self._last_theta = None, None
+        self._last_pos, self._last_theta, self._last_heading = None, None, None
         self._rejected = 0
+        self._heading_noise.clear()
+        self._position_noise.clear()
         self._prior_only = False
         if theta_prior is not None and math.isfinite(theta_prior):
             self._x[0] = wrap_angle(float(theta_prior))
@@ -117,23 +172,28 @@ class DisturbanceObserver:
             self._x = F @ self._x + np.array([applied.omega * dt, 0.0])
             Q = np.diag([(0.2 * cfg.heading_noise_rad) ** 2 * dt, cfg.d_omega_walk**2 * dt])
             self._P = F @ self._P @ F.T + Q
-        if theta is not None and math.isfinite(theta):
+        measured = theta is not None and math.isfinite(theta)
+        self._heading_noise.add(wrap_angle(theta - self._last_heading) - applied.omega * dt
+                                if measured and self._last_heading is not None and applied is not None else None)
+        self._last_heading = float(theta) if measured else None
+        R = self._heading_noise.variance(cfg.heading_noise_rad**2)
+        if measured:
             if not self._has_theta or self._prior_only:
                 self._prior_only = False
                 self._x[0] = theta
-                self._P[0, 0] = cfg.heading_noise_rad**2
+                self._P[0, 0] = R
                 self._P[0, 1] = self._P[1, 0] = 0.0
                 self._has_theta = True
                 self._rejected = 0
             else:
                 innov = wrap_angle(theta - self._x[0])
-                S = self._P[0, 0] + cfg.heading_noise_rad**2
+                S = self._P[0, 0] + R
                 if innov * innov > 25.0 * S and self._rejected < 3:
                     self._rejected += 1  # a wrong reconstruction; after 3 in a row, believe it
                 else:
                     if innov * innov > 25.0 * S:  # persistent: the reference really moved
                         self._x[0] = theta
-                        self._P[0, 0] = cfg.heading_noise_rad**2
+                        self._P[0, 0] = R
                         self._P[0, 1] = self._P[1, 0] = 0.0
                     else:
                         K = self._P[:, 0] / S
@@ -147,8 +207,11 @@ class DisturbanceObserver:
             pos = np.asarray(position_s, dtype=float)
             if self._last_pos is not None and applied is not None and dt > 0:
                 self._forward_update(pos - self._last_pos, 0.5 * (self._last_theta + theta) if abs(wrap_angle(theta - self._last_theta)) < 1.0 else theta, applied, dt)
+            else:
+                self._position_noise.add(None)
             self._last_pos, self._last_theta = pos, float(theta)
         else:
+            self._position_noise.add(None)
             self._last_pos, self._last_theta = None, None
         return self.estimate
 
@@ -158,10 +221,16 @@ class DisturbanceObserver:
         c, s = math.cos(theta_mid), math.sin(theta_mid)
         nu = np.array([c * step[0] + s * step[1], -s * step[0] + c * step[1]]) / dt  # body frame
         H = np.array([[applied.v_f, 1.0, 0.0], [applied.v_h, 0.0, 1.0]])
-        Rm = np.eye(2) * 2.0 * (cfg.position_noise_s / dt) ** 2
-        S = H @ self._Pp @ H.T + Rm
+        commanded = np.array([applied.v_f, applied.v_h])
+        self._position_noise.add((nu - self._p[0] * commanded) * dt)  # the drift's part cancels in the differences
+        innov = nu - H @ self._p
+        # a speed is the difference of two positions, each with the measured (or the configured) noise
+        r = 2.0 * self._position_noise.variance(cfg.position_noise_s**2) / dt**2
+        S = H @ self._Pp @ H.T + np.eye(2) * r
+        if float(innov @ np.linalg.solve(S, innov)) > 25.0:
+            return  # a wrong reconstruction: its speed is no evidence of drift
         K = self._Pp @ H.T @ np.linalg.inv(S)
-        self._p = self._p + K @ (nu - H @ self._p)
+        self._p = self._p + K @ innov
         self._Pp = (np.eye(3) - K @ H) @ self._Pp
         self._p[0] = max(0.05 * self.kappa0, self._p[0])  # a positive gain, whatever the noise says
 
