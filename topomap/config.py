@@ -467,9 +467,11 @@ class RelativePoseConfig:
 class ObserverConfig:
     """Disturbance observer (see :mod:`topomap.servo.disturbance`); noise levels of its Kalman filters."""
 
-    heading_noise_rad: float = 0.003  # std of one relative-heading measurement [rad], a floor: ...
-    noise_window: int = 10  # ... the noise measured over this many images counts where larger (0: fixed)
+    # the two measurement noises below are floors: each filter takes the noise measured over its
+    # last noise_window images where that is larger (second differences; 0 = the floors only)
+    heading_noise_rad: float = 0.003  # std of one relative-heading measurement [rad]
     position_noise_s: float = 0.004  # std of one scaled-position measurement [lambda]
+    noise_window: int = 10
     d_omega_walk: float = 0.05  # random-walk intensity of d_omega [rad/s per sqrt(s)]
     d_omega_max: float = 0.5  # |d_omega_hat| is clipped to this [rad/s]
     forward_walk: float = 0.02  # random-walk intensity of the forward parameters [per sqrt(s)]

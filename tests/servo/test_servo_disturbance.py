@@ -136,6 +136,29 @@ def test_scaled_speed_ratio_is_observed_from_consecutive_positions():
     assert abs(est.mu_f) < 0.01
 
 
+def scattered_positions(window, seed, steps=300, lam=2.0, slip=0.1, dt=0.1):
+    """(kappa over its true value, largest |mu| after 10 s; kappa is as poor either way here) from scaled positions that scatter by 0.02
+    and now and then by 0.3 (the other reconstruction of a deep view), under a varying speed."""
+    rng = np.random.default_rng(seed)
+    obs = DisturbanceObserver(ObserverConfig(noise_window=window), kappa0=1 / 3.0)
+    pos, theta, last, worst = np.array([-3.0, 0.5]), 0.2, None, 0.0
+    for k in range(steps):
+        measured = pos / lam + rng.normal(0, 0.02, 2) + (rng.normal(0, 0.3, 2) if rng.random() < 0.3 else 0.0)
+        est = obs.update(dt, last, theta, measured)
+        last = Command(0.1 + 0.15 * (1 + math.sin(0.1 * k)), 0.0, 0.0)
+        pos = pos + (1 - slip) * last.v_f * dt * np.array([math.cos(theta), math.sin(theta)])
+        worst = max(worst, abs(est.mu_f), abs(est.mu_h)) if k * dt >= 10.0 else 0.0
+    return est.kappa / ((1 - slip) / lam), worst
+
+
+def test_scattered_positions_do_not_become_a_drift():
+    """No drift acts; a drift read from scatter moves every pose the servo's window predicts."""
+    fixed = [scattered_positions(0, seed) for seed in range(4)]
+    measured = [scattered_positions(10, seed) for seed in range(4)]
+    assert np.mean([w for _, w in fixed]) > 0.06
+    assert max(w for _, w in measured) < 0.04
+
+
 def test_config_is_validated():
     with pytest.raises(ConfigError, match="must be positive"):
         ObserverConfig(heading_noise_rad=0.0)

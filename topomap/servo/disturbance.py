@@ -19,13 +19,12 @@ The heading's measurement noise is not one number: a view with near texture reso
 a tenth of a degree, a deep corridor view near its goal scatters it by degrees between two
 reconstructions (a small turn and a small sideways step move distant points alike). A filter that
 assumes the first noise under the second turns every scatter into a ``d_omega`` that the law then
-"compensates", spinning the camera away from the view (docs/servo.md, "Heading noise"). So the
-heading filter's measurement noise is the larger of ``heading_noise_rad`` and the noise measured
-over its last ``noise_window`` images (:class:`_NoiseMeter`: second differences, so that neither a
-varying disturbance nor the filter's lag counts as noise; their median, so that one wrong
-reconstruction in a few moves it not at all). The forward filter keeps its configured noise: it
-re-learns ``kappa`` at every subgoal (the scale changes with the view), and a measured noise slowed
-that enough to cost omnidirectional arrivals their precision (docs/servo.md).
+"compensates", spinning the camera away from the view (docs/servo.md, "Heading noise"). The scaled
+positions scatter the same way (by a metre, now and then, at a goal 0.1 m away), and a drift read
+from them shifts every pose the servo's window predicts. So each filter's measurement noise is the
+larger of the configured one and the noise measured over its last ``noise_window`` images
+(:class:`_NoiseMeter`: second differences, so that neither a varying disturbance nor the filter's
+lag counts as noise; their median, so that one wrong reconstruction in a few moves it not at all).
 
 The forward disturbance itself is rejected by integral action in the laws.
 Hand-written 2- and 3-state Kalman filters (a few lines of numpy; no library needed for this size).
@@ -69,8 +68,10 @@ class DisturbanceEstimate:
         return math.isfinite(self.d_omega_std) and self.d_omega_std < 0.1
 
 
-#: Deviation of one measurement per median size of its second differences (1 / (0.6745 sqrt 6)).
+#: Deviation of one measurement per median size of its second differences, a scalar (1 / (0.6745 sqrt 6)) ...
 SECOND_DIFFERENCE_TO_STD = 0.6053
+#: ... and a 2-D point (per axis; the median length of a 2-D Gaussian is 1.1774 deviations: 1 / (1.1774 sqrt 6)).
+SECOND_DIFFERENCE_TO_STD_2D = 0.3467
 
 
 class _NoiseMeter:
@@ -124,6 +125,7 @@ class DisturbanceObserver:
         # forward filter: p = [kappa, mu_f, mu_h]
         self._p = np.array([self.kappa0, 0.0, 0.0])
         self._Pp = np.diag([(0.5 * self.kappa0) ** 2, (0.05 * self.kappa0) ** 2, (0.05 * self.kappa0) ** 2])
+        self._position_noise = _NoiseMeter(self.cfg.noise_window, SECOND_DIFFERENCE_TO_STD_2D)
         self._last_pos: np.ndarray | None = None
         self._last_theta: float | None = None
         self._last_heading: float | None = None  # the last measured heading (for the noise meter)
@@ -143,6 +145,7 @@ class DisturbanceObserver:
         self._last_pos, self._last_theta, self._last_heading = None, None, None
         self._rejected = 0
         self._heading_noise.clear()
+        self._position_noise.clear()
         self._prior_only = False
         if theta_prior is not None and math.isfinite(theta_prior):
             self._x[0] = wrap_angle(float(theta_prior))
@@ -204,8 +207,11 @@ class DisturbanceObserver:
             pos = np.asarray(position_s, dtype=float)
             if self._last_pos is not None and applied is not None and dt > 0:
                 self._forward_update(pos - self._last_pos, 0.5 * (self._last_theta + theta) if abs(wrap_angle(theta - self._last_theta)) < 1.0 else theta, applied, dt)
+            else:
+                self._position_noise.add(None)
             self._last_pos, self._last_theta = pos, float(theta)
         else:
+            self._position_noise.add(None)
             self._last_pos, self._last_theta = None, None
         return self.estimate
 
@@ -215,10 +221,16 @@ class DisturbanceObserver:
         c, s = math.cos(theta_mid), math.sin(theta_mid)
         nu = np.array([c * step[0] + s * step[1], -s * step[0] + c * step[1]]) / dt  # body frame
         H = np.array([[applied.v_f, 1.0, 0.0], [applied.v_h, 0.0, 1.0]])
-        Rm = np.eye(2) * 2.0 * (cfg.position_noise_s / dt) ** 2
-        S = H @ self._Pp @ H.T + Rm
+        commanded = np.array([applied.v_f, applied.v_h])
+        self._position_noise.add((nu - self._p[0] * commanded) * dt)  # the drift's part cancels in the differences
+        innov = nu - H @ self._p
+        # a speed is the difference of two positions, each with the measured (or the configured) noise
+        r = 2.0 * self._position_noise.variance(cfg.position_noise_s**2) / dt**2
+        S = H @ self._Pp @ H.T + np.eye(2) * r
+        if float(innov @ np.linalg.solve(S, innov)) > 25.0:
+            return  # a wrong reconstruction: its speed is no evidence of drift
         K = self._Pp @ H.T @ np.linalg.inv(S)
-        self._p = self._p + K @ (nu - H @ self._p)
+        self._p = self._p + K @ innov
         self._Pp = (np.eye(3) - K @ H) @ self._Pp
         self._p[0] = max(0.05 * self.kappa0, self._p[0])  # a positive gain, whatever the noise says
 
