@@ -137,8 +137,9 @@ def test_scaled_speed_ratio_is_observed_from_consecutive_positions():
 
 
 def scattered_positions(window, seed, steps=300, lam=2.0, slip=0.1, dt=0.1):
-    """(kappa over its true value, largest |mu| after 10 s; kappa is as poor either way here) from scaled positions that scatter by 0.02
-    and now and then by 0.3 (the other reconstruction of a deep view), under a varying speed."""
+    """(kappa over its true value, largest |mu| after 10 s) from scaled positions that scatter by 0.02
+    and now and then by 0.3 (the other reconstruction of a deep view), under a varying speed; kappa
+    is as poor either way here."""
     rng = np.random.default_rng(seed)
     obs = DisturbanceObserver(ObserverConfig(noise_window=window), kappa0=1 / 3.0)
     pos, theta, last, worst = np.array([-3.0, 0.5]), 0.2, None, 0.0

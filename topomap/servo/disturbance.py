@@ -226,10 +226,10 @@ class DisturbanceObserver:
         innov = nu - H @ self._p
         # a speed is the difference of two positions, each with the measured (or the configured) noise
         r = 2.0 * self._position_noise.variance(cfg.position_noise_s**2) / dt**2
-        S = H @ self._Pp @ H.T + np.eye(2) * r
-        if float(innov @ np.linalg.solve(S, innov)) > 25.0:
+        S_inv = np.linalg.inv(H @ self._Pp @ H.T + np.eye(2) * r)
+        if float(innov @ S_inv @ innov) > 25.0:
             return  # a wrong reconstruction: its speed is no evidence of drift
-        K = self._Pp @ H.T @ np.linalg.inv(S)
+        K = self._Pp @ H.T @ S_inv
         self._p = self._p + K @ innov
         self._Pp = (np.eye(3) - K @ H) @ self._Pp
         self._p[0] = max(0.05 * self.kappa0, self._p[0])  # a positive gain, whatever the noise says
