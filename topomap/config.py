@@ -503,10 +503,7 @@ class ServoConfig:
     k_alpha: float = 1.2  # bearing gain k [1/s]
     h: float = 1.5  # weight of theta_A in the Lyapunov function
     # omnidirectional and final alignment
-    # the PI loop must follow a forward disturbance that varies within seconds (docs/servo.md, "The omni
-    # position gain"); critically damped or over at k_i's 0.15 for k_p >= 0.77
-    k_p: float = 1.0  # omnidirectional position gain [1/s]
-    k_along: float = 0.5  # a unicycle's along-track gain while it aligns at its goal [1/s]
+    k_p: float = 0.5  # position gain [1/s]
     k_theta: float = 1.0  # heading gain [1/s]
     k_i: float = 0.15  # integral gain on the scaled position error [1/s^2]
     integral_limit_mps: float = 0.08  # |integral action| at most this [m/s]
@@ -524,7 +521,7 @@ class ServoConfig:
     pose_window: int = 5
 
     def __post_init__(self) -> None:
-        for name in ("max_speed_mps", "max_turn_rps", "nominal_scale_m", "gamma", "k_alpha", "h", "k_p", "k_along", "k_theta"):
+        for name in ("max_speed_mps", "max_turn_rps", "nominal_scale_m", "gamma", "k_alpha", "h", "k_p", "k_theta"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"servo {name}={getattr(self, name)} must be positive")
         for name in ("k_i", "integral_limit_mps", "integral_zone_m", "dock_radius_m", "position_tol_m", "heading_tol_deg"):

@@ -134,7 +134,7 @@ def unicycle_law(
     ``(-x, -z, theta)``, with ``v`` negated — otherwise an overshoot would make Aicardi turn around
     (``alpha = pi``). Inside ``dock_radius_m`` (estimated, ``lambda_0 rho_s``) the bearing of the goal
     is undefined at the scale of the measurement noise, so the vehicle aligns its heading:
-    ``omega = -k_theta theta - d_omega_hat`` while ``v = k_along eps`` regulates the along-track error.
+    ``omega = -k_theta theta - d_omega_hat`` while ``v = k_p eps`` regulates the along-track error.
     Integral action on ``eps`` (``compensate``) learns the forward disturbance (docs/theory.md section 3:
     "needs integral or adaptive action"). It runs while aligning, and within ``integral_zone_m``
     when the distance has not improved by ``stall_progress_m`` for ``stall_time_s`` (the vehicle is
@@ -165,7 +165,7 @@ def unicycle_law(
     v_i = ki * lam0 * integ
     if aligning:
         d_hat = d_omega_hat if cfg.compensate else 0.0
-        v = saturate(cfg.k_along * lam0 * eps, max(0.0, cfg.max_speed_mps - abs(v_i))) + v_i
+        v = saturate(cfg.k_p * lam0 * eps, max(0.0, cfg.max_speed_mps - abs(v_i))) + v_i
         cmd = Command(v, 0.0, -cfg.k_theta * wrap_angle(theta) - d_hat).clipped(cfg.max_speed_mps, cfg.max_turn_rps)
     else:
         sgn = -1.0 if reverse else 1.0
