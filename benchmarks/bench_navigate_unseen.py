@@ -328,6 +328,14 @@ def print_table(summary: dict, title: str, wall_s: float | None = None) -> None:
           + (f"; total wall time {wall_s / 60:.1f} min)" if wall_s is not None else ")"))
 
 
+def runs_baseline(k: int, w: int, every: int) -> bool:
+    """Does the (slow) uncompensated servo run episode ``k`` of the ``w``-th world? Every ``every``-th
+    episode of each world, shifted by the world's position, so that the baseline spreads over the
+    worlds even when their number is a multiple of ``every`` (counting jobs in the interleaved order
+    put every baseline episode on the first world)."""
+    return (k + w) % max(1, every) == 0
+
+
 def config_overrides(base, spec: str | None, option: str = "--servo"):
     """``base`` with the ``key=number,...`` of ``spec`` (its numeric fields; an ablation such as
     ``pose_window=1`` of a ServoConfig, ``arrive_floor_max_m=0.12`` of a NavigateConfig), parsed as
@@ -434,13 +442,13 @@ def main(argv: list[str] | None = None) -> int:
         drawn = draw(maps, specs, args.episodes, args.seed, args.start_offset, args.max_hops)
         jobs: list[dict] = []
         # episodes in order, worlds interleaved, each by every method (the uncompensated servo on
-        # every --baseline-every-th only): a run cut short is still paired and covers every world
+        # runs_baseline only): a run cut short is still paired and covers every world
         for k in range(max(len(d) for d in drawn)):
             for w, (path, eps) in enumerate(zip(maps, drawn)):
                 if k >= len(eps):
                     continue
                 for m in methods:
-                    if m == "uncompensated" and (k * len(maps) + w) % max(1, args.baseline_every):
+                    if m == "uncompensated" and not runs_baseline(k, w, args.baseline_every):
                         continue
                     jobs.append({"map": str(path), "episode": eps[k], "method": m, "disturbance": args.disturbance,
                                  "budget_per_hop": args.budget_per_hop, "conditions": args.conditions,

@@ -93,3 +93,11 @@ def test_servo_and_navigate_ablations_parse_like_the_other_options(bench):
         bench.config_overrides(bench.NavigateConfig(), "distrust_loop_after=two", "--navigate")
     with pytest.raises(ConfigError, match="distrust_loop_after"):  # the config's own check
         bench.config_overrides(bench.NavigateConfig(), "distrust_loop_after=-1", "--navigate")
+
+
+def test_the_baseline_spreads_over_the_worlds(bench):
+    # ten worlds of ten episodes, every 10th: one baseline episode per world, both vehicles
+    picked = [(k, w) for k in range(10) for w in range(10) if bench.runs_baseline(k, w, 10)]
+    assert len(picked) == 10 and {w for _, w in picked} == set(range(10))
+    assert {k % 2 for k, _ in picked} == {0, 1}  # episodes alternate unicycle / omni
+    assert all(bench.runs_baseline(k, w, 1) for k in range(3) for w in range(3))
