@@ -423,8 +423,8 @@ def test_arrival_needs_a_measured_floor_when_the_height_is_known():
     """Held-out world 118 ep 0 under ``moved``: the goal's scale from its neighbours was 1 m per unit
     (clipped; the truth 9-16 m on a deep corridor view), the servo converged 0.67 m out, the image
     agreed and the floor was measured in too few frames to contradict — a false arrival. With the
-    camera height known an unmeasured floor certifies nothing: "far", and the floor readings the
-    window has give the scale."""
+    camera height known an unmeasured floor certifies nothing: no arrival; the few readings the window
+    has, when they lie beyond, say "far" and give the scale."""
     import types
 
     from topomap.config import NavigateConfig
@@ -438,7 +438,8 @@ def test_arrival_needs_a_measured_floor_when_the_height_is_known():
         s = _Settle(cfg, floor_required=True)
         return s, [s.update(k * cfg.control_period_s, out, True, lambda: True, f) for k, f in enumerate(floors)][-1]
 
-    assert last([math.nan] * n)[1] == "far"
+    assert last([math.nan] * n)[1] is None  # not measured yet: hold, the readings accumulate
+    assert last([0.05] + [math.nan] * (n - 1))[1] is None  # one agreeing reading certifies nothing
     sparse, answer = last([0.8] + [math.nan] * (n - 1))  # one reading in five: too few to judge
     assert answer == "far" and sparse.floor_scale(1.0) == pytest.approx(0.8 / 0.02)
     assert last([0.05] * n)[1] == "precise"
@@ -469,7 +470,34 @@ def test_a_patient_settle_judges_the_floor_over_its_own_window():
         return None
 
     assert first(3) == "settled"  # a third of the frames
-    assert first(len(t) // 3) == "far"  # three readings in the window: unmeasured
+    assert first(len(t) // 3) is None  # three readings in the window: unmeasured, no arrival
+
+
+def test_a_sparse_floor_is_judged_once_fifteen_readings_accumulate():
+    """Fresh world 237 ep 8: a unicycle held 0.02-0.13 m from its goal for 140 s and timed out. The
+    floor was required and read in one frame in five (median 0.09 m): never half of a 3-s window, so
+    every arrival was refused as unmeasured and the refusal restarted the window — 13 times; the
+    patient settle's 20 s never came. Now an unmeasured floor holds the window, and once the last 20 s
+    hold 15 readings their median judges."""
+    import types
+
+    from topomap.config import NavigateConfig
+    from topomap.navigate import _Settle
+
+    cfg = NavigateConfig()
+    out = types.SimpleNamespace(converged=True, position_error_m=0.02, heading_error_rad=0.0)
+
+    def first(reading):
+        s = _Settle(cfg, floor_required=True)
+        for k in range(int(cfg.settle_patience_s / cfg.control_period_s)):
+            floor = reading if k % 5 == 0 else math.nan
+            if (a := s.update(k * cfg.control_period_s, out, True, lambda: True, floor)) is not None:
+                return a, k
+        return None, k
+
+    answer, k = first(0.09)
+    assert answer == "precise" and k == 5 * (cfg.arrive_floor_min_readings - 1)
+    assert first(0.4)[0] == "far"  # sparse readings beyond the bound refuse at once
 
 
 def test_only_a_unicycle_settles_patiently():

@@ -662,9 +662,10 @@ class NavigateConfig:
     # (taken as floor) measure, median over the settle window, is below this [m]; for a "settled"
     # arrival below settle_patience_max_m. The goal's scale from its neighbours can be several times
     # off on long views (their floor points mismatched), and with it the servo's metric estimate.
-    # Refused, the servo takes the scale the floor measures and keeps approaching. Checked only when
-    # at least arrive_floor_min_fraction of the window's frames, or arrive_floor_min_readings of them,
-    # measured the floor (a median of 15 readings is as sure in a 20-s window as in a 3-s one).
+    # Refused, the servo takes the scale the floor measures and keeps approaching. Checked when at
+    # least arrive_floor_min_fraction of the window's frames, or arrive_floor_min_readings of them,
+    # measured the floor, or else on the last arrive_floor_min_readings readings of the patience
+    # window (a median of 15 readings is as sure over 20 s as over 3); until then no arrival.
     arrive_floor_max_m: float = 0.15
     arrive_floor_min_fraction: float = 0.5
     arrive_floor_min_readings: int = 15

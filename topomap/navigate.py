@@ -25,7 +25,9 @@ matches with the goal keyframe have moved less than ``arrive_image_error`` of th
 a single wall the planar relative pose is ambiguous, so the pose estimate alone cannot certify arrival.
 With the camera height known, the floor must agree too: the distance the lowest matched points measure
 (median over the settle window) below ``arrive_floor_max_m``, measured in at least
-``arrive_floor_min_fraction`` of the window's frames — an unmeasured floor certifies nothing — wherever
+``arrive_floor_min_fraction`` of the window's frames, or in the last ``arrive_floor_min_readings``
+readings of the patience window where few frames resolve it — an unmeasured floor certifies nothing,
+and the robot holds while the readings accumulate — wherever
 the goal's keyframe shows a floor (a close wall filling the view hides it; there no image can measure
 it, and image and servo decide, as without the height). The image
 check looks at the image turned back by the servo's heading estimate: it judges the position. On long views the goal's scale from its
@@ -229,39 +231,65 @@ class _Settle:
         """One period at the goal; ``loosely_agrees()``: the image agrees within the patience bound
         (asked only when needed); ``floor_m``: the distance the floor measures in this image [m] (NaN:
         unknown). Returns ``"precise"``, ``"settled"``, ``"far"`` (the servo and the image say
-        arrived, the floor disagrees or, when required, was not measured: :meth:`floor_scale` is the
-        scale its frames measure, if any) or None."""
+        arrived, the floor disagrees: :meth:`floor_scale` is the scale its frames measure, if any)
+        or None (not arrived, or the floor it requires not measured yet: :meth:`floor_verdict`)."""
         cfg = self.config
         self.converged_streak = self.converged_streak + 1 if (s.converged and image_ok) else 0
         self.history.append((time_s, s.position_error_m, s.heading_error_rad, floor_m))
         stalled = self.stalled(cfg.settle_max_m, cfg.settle_window_s, cfg.settle_progress_m)
         self.false_arrival = self.false_arrival + 1 if ((s.converged or stalled) and not image_ok) else 0
         if self.converged_streak >= cfg.settle_steps or (image_ok and stalled):
-            return "precise" if self.floor_agrees(cfg.arrive_floor_max_m) else "far"
+            floor = self.floor_verdict(cfg.arrive_floor_max_m)
+            if floor is not None:  # unmeasured: wait (the patient settle may still take it)
+                return "precise" if floor else "far"
         if (self.patient and self.stalled(cfg.settle_patience_max_m, cfg.settle_patience_s, cfg.settle_patience_progress_m)
                 and loosely_agrees()):
-            return "settled" if self.floor_agrees(cfg.settle_patience_max_m, cfg.settle_patience_s) else "far"
+            floor = self.floor_verdict(cfg.settle_patience_max_m, cfg.settle_patience_s)
+            if floor is not None:
+                return "settled" if floor else "far"
         return None
+
+    def _floor_readings(self, window_s: float | None) -> np.ndarray:
+        """The floor distances measured over the last ``window_s`` (default the settle window), NaN
+        where a frame measured none [m]."""
+        now = self.history[-1][0]
+        window_s = self.config.settle_window_s if window_s is None else window_s
+        return np.array([h[3] for h in self.history if h[0] >= now - window_s])
 
     def floor_distance(self, window_s: float | None = None) -> float:
         """Median distance the floor measured over the last ``window_s`` (default the settle window)
         [m]; NaN when fewer than ``arrive_floor_min_fraction`` of its frames, and fewer than
         ``arrive_floor_min_readings``, measured it."""
         cfg = self.config
-        now = self.history[-1][0]
-        window_s = cfg.settle_window_s if window_s is None else window_s
-        floor = np.array([h[3] for h in self.history if h[0] >= now - window_s])
+        floor = self._floor_readings(window_s)
         ok = np.isfinite(floor)
         if not ok.any() or (ok.mean() < cfg.arrive_floor_min_fraction and ok.sum() < cfg.arrive_floor_min_readings):
             return math.nan
         return float(np.median(floor[ok]))
 
-    def floor_agrees(self, bound_m: float, window_s: float | None = None) -> bool:
-        """The floor measures an arrival within ``bound_m``. Unmeasured, it agrees only when not
-        required: a goal's scale from its neighbours can be ten times too small on a deep view, where
-        the image barely changes over a metre — then the floor is the only metric witness left."""
+    def floor_verdict(self, bound_m: float, window_s: float | None = None) -> bool | None:
+        """Does the floor measure an arrival within ``bound_m``? Measured over the window: whether it
+        does. Unmeasured and not required: True (nothing contradicts). Required (a goal's scale from
+        its neighbours can be ten times too small on a deep view, where the image barely changes over
+        a metre — the floor is the only metric witness left): the last ``arrive_floor_min_readings``
+        readings of the patience window judge when it holds that many (a view whose floor one frame in
+        five resolves: a median of 15 readings is as sure over 8 s as over 3); else False if the few
+        readings there are lie beyond (their scale is the servo's next), else None: not known yet —
+        the robot holds and the readings accumulate (a refusal would restart the window, and such a
+        view would never be judged)."""
+        cfg = self.config
         d = self.floor_distance(window_s)
-        return d < bound_m if self.floor_required else not d >= bound_m
+        if math.isfinite(d):
+            return d < bound_m
+        if not self.floor_required:
+            return True
+        recent = self._floor_readings(max(cfg.settle_patience_s, window_s or 0.0))
+        recent = recent[np.isfinite(recent)][-cfg.arrive_floor_min_readings:]
+        if len(recent) == cfg.arrive_floor_min_readings:
+            return float(np.median(recent)) < bound_m
+        few = self._floor_readings(window_s)
+        few = few[np.isfinite(few)]
+        return False if few.size and float(np.median(few)) >= bound_m else None
 
     def floor_scale(self, scale_m: float) -> float | None:
         """The goal's scale [m per scaled unit] the floor measured over the settle window, from the
