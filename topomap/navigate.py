@@ -260,8 +260,11 @@ class _Settle:
         """Median distance the floor measured over the last ``window_s`` (default the settle window)
         [m]; NaN when fewer than ``arrive_floor_min_fraction`` of its frames, and fewer than
         ``arrive_floor_min_readings``, measured it."""
+        return self._measured_median(self._floor_readings(window_s))
+
+    def _measured_median(self, floor: np.ndarray) -> float:
+        """:meth:`floor_distance` of the readings ``floor`` (NaN where a frame measured none)."""
         cfg = self.config
-        floor = self._floor_readings(window_s)
         ok = np.isfinite(floor)
         if not ok.any() or (ok.mean() < cfg.arrive_floor_min_fraction and ok.sum() < cfg.arrive_floor_min_readings):
             return math.nan
@@ -278,7 +281,8 @@ class _Settle:
         the robot holds and the readings accumulate (a refusal would restart the window, and such a
         view would never be judged)."""
         cfg = self.config
-        d = self.floor_distance(window_s)
+        floor = self._floor_readings(window_s)
+        d = self._measured_median(floor)
         if math.isfinite(d):
             return d < bound_m
         if not self.floor_required:
@@ -287,8 +291,7 @@ class _Settle:
         recent = recent[np.isfinite(recent)][-cfg.arrive_floor_min_readings:]
         if len(recent) == cfg.arrive_floor_min_readings:
             return float(np.median(recent)) < bound_m
-        few = self._floor_readings(window_s)
-        few = few[np.isfinite(few)]
+        few = floor[np.isfinite(floor)]
         return False if few.size and float(np.median(few)) >= bound_m else None
 
     def floor_scale(self, scale_m: float) -> float | None:
