@@ -277,9 +277,12 @@ class _Settle:
         a metre — the floor is the only metric witness left): the last ``arrive_floor_min_readings``
         readings of the patience window judge when it holds that many (a view whose floor one frame in
         five resolves: a median of 15 readings is as sure over 8 s as over 3); else False if the few
-        readings there are lie beyond (their scale is the servo's next), else None: not known yet —
-        the robot holds and the readings accumulate (a refusal would restart the window, and such a
-        view would never be judged)."""
+        readings there are lie beyond (their scale is the servo's next); else True once a whole patience
+        window at the goal resolved the floor fewer times than that — the keyframe's floor points do
+        not match from here (untextured floor), so no image taken here measures it, as where a close
+        wall hides it: image and servo decide; else None: not known yet — the robot holds and the
+        readings accumulate (a refusal would restart the window, and such a view would never be
+        judged)."""
         cfg = self.config
         floor = self._floor_readings(window_s)
         d = self._measured_median(floor)
@@ -292,7 +295,17 @@ class _Settle:
         if len(recent) == cfg.arrive_floor_min_readings:
             return float(np.median(recent)) < bound_m
         few = floor[np.isfinite(floor)]
-        return False if few.size and float(np.median(few)) >= bound_m else None
+        if few.size and float(np.median(few)) >= bound_m:
+            return False
+        return True if self.floor_unmeasurable() else None
+
+    def floor_unmeasurable(self) -> bool:
+        """The last ``settle_patience_s`` at the goal (a whole window of history) resolved the floor
+        fewer than ``arrive_floor_min_readings`` times: the floor this keyframe shows is not matched."""
+        cfg = self.config
+        if not self.history or self.history[-1][0] - self.history[0][0] < cfg.settle_patience_s:
+            return False
+        return int(np.isfinite(self._floor_readings(cfg.settle_patience_s)).sum()) < cfg.arrive_floor_min_readings
 
     def floor_scale(self, scale_m: float) -> float | None:
         """The goal's scale [m per scaled unit] the floor measured over the settle window, from the
@@ -765,7 +778,8 @@ class Navigator:
                         "" if arrived == "precise" else f" (settled {s.position_error_m:.2f} m off by its estimate: no further progress)") + (
                         f" (the floor measures {floor:.2f} m)" if math.isfinite(floor) else
                         " (its view shows no floor to measure)" if self._camera_height_m is not None and not leg.settle.floor_required
-                        else "")
+                        else f" (its floor not matched: under {cfg.arrive_floor_min_readings} readings in "
+                        f"{cfg.settle_patience_s:.0f} s)" if leg.settle.floor_unmeasurable() else "")
                     yield NavEvent(EventKind.ARRIVED, self._time, out.message, subgoal=goal, route=tuple(nodes))
                     return
             # -- intermediate subgoal: switch?
