@@ -640,6 +640,11 @@ class NavigateConfig:
     # ... or when the next node of the route verifies with more inliers than the current one
     # (it is the better target now), or the robot has driven past the subgoal.
     switch_min_inliers: int = 30  # the next node must verify with at least this many inliers
+    # None of these counts while the floor measures the subgoal farther than this (median of the
+    # last periods' readings, with the camera height known) [m]: on a view down a long corridor the
+    # subgoal's scale from its neighbours can be several times too small and the nodes behind it
+    # match as well as it does, so the estimates say "reached" metres early; None: no such check.
+    switch_floor_max_m: float | None = 0.7
     settle_steps: int = 5  # the final goal counts as reached after this many converged steps in a row,
     # or when the servo stops making progress close to it: a docked unicycle cannot remove a small
     # lateral offset by turning in place. Then, over settle_window_s (medians, robust to jitter):
@@ -665,7 +670,8 @@ class NavigateConfig:
     # Refused, the servo takes the scale the floor measures and keeps approaching. Checked when at
     # least arrive_floor_min_fraction of the window's frames, or arrive_floor_min_readings of them,
     # measured the floor, or else on the last arrive_floor_min_readings readings of the patience
-    # window (a median of 15 readings is as sure over 20 s as over 3); until then no arrival.
+    # window (a median of 15 readings is as sure over 20 s as over 3); until then no arrival — unless a
+    # whole settle_patience_s at the goal gave fewer: that floor is not matched, image and servo decide.
     arrive_floor_max_m: float = 0.15
     arrive_floor_min_fraction: float = 0.5
     arrive_floor_min_readings: int = 15
@@ -776,6 +782,8 @@ class NavigateConfig:
             raise ConfigError("navigate start_verified_confidence and arrive_floor_min_fraction must lie in [0, 1]")
         if not self.start_fallback_confidence >= 0:
             raise ConfigError("navigate start_fallback_confidence must be >= 0 (1 or more: never start on a weaker answer)")
+        if self.switch_floor_max_m is not None and not self.switch_floor_max_m > 0:
+            raise ConfigError(f"navigate switch_floor_max_m={self.switch_floor_max_m} must be positive or None")
         if self.arrive_floor_min_readings < 1:
             raise ConfigError("navigate arrive_floor_min_readings must be at least 1")
         if not self.arrive_floor_max_m > 0 or not self.start_confirm_heading_deg > 0:

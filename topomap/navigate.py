@@ -15,7 +15,11 @@ counts as reached — and the next node becomes the target — when
   within ``switch_heading_deg`` of the subgoal's (at the teach run's corners the next node is out of
   view until the robot has turned), or
 * the next node of the route verifies with more inliers than the current one (and at least
-  ``switch_min_inliers``): it is the better target now.
+  ``switch_min_inliers``): it is the better target now;
+
+and in no case while the floor, with the camera height known, measures the subgoal farther than
+``switch_floor_max_m`` (a view down a long corridor: the subgoal's scale from its neighbours can be
+several times too small, and the nodes behind it match as well as it does).
 
 The final goal is reached when the servo reports convergence for ``settle_steps`` periods in a row,
 or when, aligned and close, it stops making progress (``settle_*`` in
@@ -29,7 +33,8 @@ With the camera height known, the floor must agree too: the distance the lowest 
 readings of the patience window where few frames resolve it — an unmeasured floor certifies nothing,
 and the robot holds while the readings accumulate — wherever
 the goal's keyframe shows a floor (a close wall filling the view hides it; there no image can measure
-it, and image and servo decide, as without the height). The image
+it, and image and servo decide, as without the height; so they do where a whole patience window at the
+goal resolved the floor fewer than ``arrive_floor_min_readings`` times: its floor points do not match). The image
 check looks at the image turned back by the servo's heading estimate: it judges the position. On long views the goal's scale from its
 neighbours can be several times too small — the servo then believes it has arrived a quarter metre
 out, where the image barely differs — so a refused arrival hands the servo the scale the floor measured.
@@ -126,6 +131,10 @@ BACKOFF_CHECK_EVERY = 3
 #: The floor can certify an arrival only where the goal's keyframe shows it: at least this many of its
 #: features below the floor line (a wall closer than the first floor the camera sees hides it).
 FLOOR_MIN_KEYFRAME_POINTS = 10
+#: An intermediate subgoal's floor check (``switch_floor_max_m``) takes the median of the readings of
+#: the last this many periods, when at least ``SWITCH_FLOOR_MIN_READINGS`` of them measured the floor.
+SWITCH_FLOOR_PERIODS = 10
+SWITCH_FLOOR_MIN_READINGS = 3
 
 
 class RobotLike(Protocol):
@@ -417,6 +426,7 @@ class Navigator:
         self._estimate = None  # the servo's latest disturbance estimate
         self._here: int | None = None  # the node the robot was last localized at
         self._approach_side: float | None = None  # side of the subgoal camera the robot comes from
+        self._subgoal_floor_m: deque[float] = deque(maxlen=SWITCH_FLOOR_PERIODS)
         self._last_good: int | None = None  # the last node that verified well
         # (node, distance commanded by then) where the track was last confirmed: what bounds how far
         # away the robot can be since
@@ -684,6 +694,7 @@ class Navigator:
         # the side of the subgoal camera the robot comes from: behind it (x < 0) when following the
         # taught direction, in front of it when driving the route backwards
         self._approach_side = None
+        self._subgoal_floor_m: deque[float] = deque(maxlen=SWITCH_FLOOR_PERIODS)  # the floor's distance to it [m]
         normals, scale = self.pairs.goal_view(nodes[i], self._camera_height_m, self.servo.config.nominal_scale_m)
         self.servo.retarget(normals, scale if i == len(nodes) - 1 else None, heading_prior)  # metric at the goal
         self.servo.reconfigure(**(self._goal_servo if i == len(nodes) - 1 else self._waypoint_servo))
@@ -1044,8 +1055,11 @@ class Navigator:
         return math.nan if pair is None else pair.theta_rad
 
     def _switch_reason(self, q: Query, s: ServoOutput, nxt: int, v: Verification) -> str:
-        """Why the current intermediate subgoal counts as reached, or ``""``."""
+        """Why the current intermediate subgoal counts as reached, or ``""``. Not while the floor
+        measures it farther than ``switch_floor_max_m`` (:meth:`_floor_says_far`)."""
         cfg = self.config
+        if self._floor_says_far(s):
+            return ""
         aligned = math.isfinite(s.heading_error_rad) and abs(s.heading_error_rad) < math.radians(cfg.switch_heading_deg)
         if s.status is not ServoStatus.LOST and aligned:
             if math.isfinite(s.position_error_m) and s.position_error_m < cfg.switch_distance_m:
@@ -1059,3 +1073,17 @@ class Navigator:
         if vn.inliers >= cfg.switch_min_inliers and vn.inliers > v.inliers:
             return f"next node matches better ({vn.inliers} vs {v.inliers} inliers)"
         return ""
+
+    def _floor_says_far(self, s: ServoOutput) -> bool:
+        """Records this period's floor reading of the current subgoal; True when the median of the last
+        ``SWITCH_FLOOR_PERIODS`` readings (at least ``SWITCH_FLOOR_MIN_READINGS`` of them measured)
+        exceeds ``switch_floor_max_m``. Driving a straight corridor against the taught direction, each
+        node behind looks down the same corridor: the servo said "0.19 m away" and the next node
+        "matched better" 1.2-2 m out, while the floor measured 1.0-1.8 m (fresh office world 259 ep 3)."""
+        bound = self.config.switch_floor_max_m
+        if bound is None or self._camera_height_m is None:
+            return False
+        self._subgoal_floor_m.append(s.floor_distance_h * self._camera_height_m)
+        floor = np.array(self._subgoal_floor_m)
+        floor = floor[np.isfinite(floor)]
+        return len(floor) >= SWITCH_FLOOR_MIN_READINGS and float(np.median(floor)) > bound
