@@ -1044,3 +1044,36 @@ def test_a_loop_closure_that_legs_keep_failing_past_is_distrusted():
         NavigateConfig(distrust_loop_after=-1)
     with pytest.raises(ConfigError, match="distrust_within_hops"):
         NavigateConfig(distrust_within_hops=0)
+
+
+def test_no_switch_while_the_floor_measures_the_subgoal_far():
+    """Fresh office world 259 ep 3 (omni): driving a straight corridor against the taught direction,
+    the servo said subgoal 119 was "0.19 m away" and node 119 "matched better" than 120 while the
+    robot was 1.2-1.8 m from them; the floor measured 1.0-1.8 m. Four switches in 0.3 s left the robot
+    2.8 m short of its subgoal, lost it and gave up. The floor's median over the last periods now holds
+    an intermediate switch back while it measures the subgoal beyond ``switch_floor_max_m``; without
+    enough readings, or without the camera height, the switch rules are as before."""
+    import types
+
+    from topomap.config import NavigateConfig
+    from topomap.errors import ConfigError
+
+    nav, _ = _blind_navigator(camera_height_m=0.8)
+    nav._target([0, 1, 2], 0)
+    h = 0.8
+    reading = lambda floor_m: types.SimpleNamespace(floor_distance_h=floor_m / h)  # noqa: E731
+    assert not nav._floor_says_far(reading(1.5)) and not nav._floor_says_far(reading(math.nan))
+    assert not nav._floor_says_far(reading(1.2))  # two readings: not enough to hold back
+    assert nav._floor_says_far(reading(1.4))  # three, median 1.4 m > 0.7 m
+    assert all(nav._floor_says_far(reading(0.2)) for _ in range(2))  # the median still far
+    assert not nav._floor_says_far(reading(0.2))  # 1.5, 1.2, 1.4 and three 0.2: median 0.7, not beyond
+    nav._target([0, 1, 2], 1)  # a new subgoal starts a new window
+    assert not any(nav._floor_says_far(reading(2.0)) for _ in range(2)) and nav._floor_says_far(reading(2.0))
+    off, _ = _blind_navigator(camera_height_m=0.8, switch_floor_max_m=None)
+    off._target([0, 1, 2], 0)
+    assert not any(off._floor_says_far(reading(2.0)) for _ in range(5))
+    unknown, _ = _blind_navigator()  # no camera height: no floor
+    unknown._target([0, 1, 2], 0)
+    assert not any(unknown._floor_says_far(reading(2.0)) for _ in range(5))
+    with pytest.raises(ConfigError):
+        NavigateConfig(switch_floor_max_m=0.0)

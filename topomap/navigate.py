@@ -426,7 +426,7 @@ class Navigator:
         self._estimate = None  # the servo's latest disturbance estimate
         self._here: int | None = None  # the node the robot was last localized at
         self._approach_side: float | None = None  # side of the subgoal camera the robot comes from
-        self._subgoal_floor_m: deque[float] = deque(maxlen=SWITCH_FLOOR_PERIODS)
+        self._subgoal_floor_m: deque[float] = deque(maxlen=SWITCH_FLOOR_PERIODS)  # the floor's distance to the subgoal [m]
         self._last_good: int | None = None  # the last node that verified well
         # (node, distance commanded by then) where the track was last confirmed: what bounds how far
         # away the robot can be since
@@ -694,7 +694,7 @@ class Navigator:
         # the side of the subgoal camera the robot comes from: behind it (x < 0) when following the
         # taught direction, in front of it when driving the route backwards
         self._approach_side = None
-        self._subgoal_floor_m: deque[float] = deque(maxlen=SWITCH_FLOOR_PERIODS)  # the floor's distance to it [m]
+        self._subgoal_floor_m.clear()  # the floor's distances to the previous subgoal
         normals, scale = self.pairs.goal_view(nodes[i], self._camera_height_m, self.servo.config.nominal_scale_m)
         self.servo.retarget(normals, scale if i == len(nodes) - 1 else None, heading_prior)  # metric at the goal
         self.servo.reconfigure(**(self._goal_servo if i == len(nodes) - 1 else self._waypoint_servo))
