@@ -774,7 +774,7 @@ class Navigator:
 
             # -- final goal: settle
             if final:
-                floor_m = s.floor_distance_h * self._camera_height_m if self._camera_height_m is not None else math.nan
+                floor_m = self._floor_m(s)
                 qa, va = self._derotated(q, v, cur_px, goal_px, s.heading_error_rad)
                 arrived = leg.settle.update(
                     self._time, s, self.agreement.agrees(qa, va, sub),
@@ -1074,6 +1074,11 @@ class Navigator:
             return f"next node matches better ({vn.inliers} vs {v.inliers} inliers)"
         return ""
 
+    def _floor_m(self, s: ServoOutput) -> float:
+        """The distance to the servo's goal the floor measures in this image [m]; NaN without the
+        camera height or a floor reading."""
+        return s.floor_distance_h * self._camera_height_m if self._camera_height_m is not None else math.nan
+
     def _floor_says_far(self, s: ServoOutput) -> bool:
         """Records this period's floor reading of the current subgoal; True when the median of the last
         ``SWITCH_FLOOR_PERIODS`` readings (at least ``SWITCH_FLOOR_MIN_READINGS`` of them measured)
@@ -1083,7 +1088,7 @@ class Navigator:
         bound = self.config.switch_floor_max_m
         if bound is None or self._camera_height_m is None:
             return False
-        self._subgoal_floor_m.append(s.floor_distance_h * self._camera_height_m)
+        self._subgoal_floor_m.append(self._floor_m(s))
         floor = np.array(self._subgoal_floor_m)
         floor = floor[np.isfinite(floor)]
         return len(floor) >= SWITCH_FLOOR_MIN_READINGS and float(np.median(floor)) > bound
