@@ -1077,3 +1077,56 @@ def test_no_switch_while_the_floor_measures_the_subgoal_far():
     assert not any(unknown._floor_says_far(reading(2.0)) for _ in range(5))
     with pytest.raises(ConfigError):
         NavigateConfig(switch_floor_max_m=0.0)
+
+
+def test_a_subgoal_whose_view_no_longer_verifies_is_crossed_by_its_taught_step(taught):
+    """Fresh world 250 under ``moved`` (posters swapped or taken down): node 71 kept 51 of ~600
+    inliers at its own pose and none from the node before it; every re-localization ended back at
+    node 70 and the episode gave up. A subgoal that never verified since the switch, reached from the
+    node before it along a straight taught step, is now crossed by driving that step (the keyframes'
+    distance and turn from their images) while watching for it or the node after it to verify. Here
+    node ``b``'s view is gone and ``c`` is seen only from near it: the robot drives the step from
+    ``a`` until ``c`` verifies, and arrives there."""
+    from topomap.config import NavigateConfig
+    from topomap.matching import Matches, Verification
+
+    m, world, poses, _ = taught
+    ids = sorted(m.nodes)
+    a, b, c = ids[3], ids[4], ids[5]
+    with Simulator(world, vehicle="omni", disturbance="none", seed=3, start_pose=goal_pose(m, poses, ids[2])) as sim:
+        nav = Navigator(m, sim.robot, "omni", config=NavigateConfig(camera_height_m=sim.camera_height_m))
+        step = nav._taught_step(a, b)
+        assert step is not None and abs(step[2]) < math.radians(5)
+        gone = Verification(Matches.empty(), np.zeros(0, bool), None, 0.0, 0.0)
+        seen, c_at = nav._match, goal_pose(m, poses, c)[:2]
+
+        def match(q, node):  # the world's side: b's posters are gone, c is seen only from within 1.2 m
+            near_c = math.dist(sim.ground_truth.pose()[:2], c_at) < 1.2
+            return gone if node == b or (node == c and not near_c) else seen(q, node)
+
+        nav._match = match
+        events = list(nav.run(c, start_node=ids[2]))
+        err = math.dist(sim.ground_truth.pose()[:2], goal_pose(m, poses, c)[:2])
+    said = [e.message for e in events if e.kind is not EventKind.STEP]
+    assert any(f"drove the taught step from {a} (the view of {b} did not verify)" in s for s in said), said
+    assert nav.outcome.status is NavStatus.ARRIVED and err < 0.15, (said, err)
+    # no step against the taught direction, nor one turning beyond bridge_max_turn_deg, nor when switched off
+    assert nav._taught_step(c, b) is None and nav._taught_step(b, a) is None
+    steps = {(x, y): nav._taught_step(x, y) for x, y in zip(ids[:-1], ids[1:])}
+    turns = [k for k, st in steps.items() if st is not None and abs(st[2]) > math.radians(8)]
+    assert turns  # the demo's corners are taught as turns of about 10 deg a keyframe
+    strict = Navigator(m, sim.robot, "omni", config=NavigateConfig(bridge_max_turn_deg=5.0, camera_height_m=0.8))
+    assert all(strict._taught_step(*k) is None for k in turns)
+    off = Navigator(m, sim.robot, "omni", config=NavigateConfig(bridge_max_m=None, camera_height_m=0.8))
+    assert off._taught_step(a, b) is None
+
+
+@pytest.mark.parametrize("field, value", [("bridge_max_m", 0.0), ("bridge_max_m", -1.0), ("bridge_max_turn_deg", 120.0),
+                                          ("bridge_max_bearing_deg", -5.0), ("bridge_speed_mps", 0.0)])
+def test_taught_step_settings_are_checked(field, value):
+    from topomap.config import NavigateConfig
+    from topomap.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="bridge_"):
+        NavigateConfig(**{field: value})
+    assert NavigateConfig(bridge_max_m=None).bridge_max_m is None  # None: never drive a step blind

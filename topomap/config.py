@@ -685,6 +685,17 @@ class NavigateConfig:
     settle_patience_progress_m: float = 0.02
     settle_patience_image_error: float = 0.06
     lost_after_steps: int = 15  # steps without usable geometry before re-localizing
+    # A subgoal that gave no usable geometry since the switch, reached from the node before it (the last
+    # that verified well) along a straight taught step (keyframe headings within bridge_max_turn_deg,
+    # the subgoal within bridge_max_bearing_deg of straight ahead, at most bridge_max_m
+    # away by the keyframes' images at the goal's scale; camera height known): before re-localizing,
+    # the robot drives that step, disturbances compensated, at bridge_speed_mps, watching for the
+    # subgoal or the one after it to verify. A keyframe whose posters were moved or taken down need not
+    # break a chain of views the teach run drove straight through. None: never.
+    bridge_max_m: float | None = 2.0
+    bridge_max_turn_deg: float = 20.0
+    bridge_max_bearing_deg: float = 25.0
+    bridge_speed_mps: float = 0.2
     # The robot's bumper (a ``collided`` flag on what its ``apply`` returns) reporting contact this
     # many periods in a row while servoing: blocked, re-localize and re-plan as for a lost subgoal;
     # no arrival is taken while in contact. (A unicycle turning while it touches a wall frees itself
@@ -782,6 +793,11 @@ class NavigateConfig:
             raise ConfigError("navigate start_verified_confidence and arrive_floor_min_fraction must lie in [0, 1]")
         if not self.start_fallback_confidence >= 0:
             raise ConfigError("navigate start_fallback_confidence must be >= 0 (1 or more: never start on a weaker answer)")
+        if self.bridge_max_m is not None and not self.bridge_max_m > 0:
+            raise ConfigError(f"navigate bridge_max_m={self.bridge_max_m} must be positive or None")
+        if not 0 <= self.bridge_max_turn_deg <= 90 or not 0 <= self.bridge_max_bearing_deg <= 90 or not self.bridge_speed_mps > 0:
+            raise ConfigError("navigate bridge_max_turn_deg and bridge_max_bearing_deg must lie in [0, 90], "
+                              "bridge_speed_mps must be positive")
         if self.switch_floor_max_m is not None and not self.switch_floor_max_m > 0:
             raise ConfigError(f"navigate switch_floor_max_m={self.switch_floor_max_m} must be positive or None")
         if self.arrive_floor_min_readings < 1:

@@ -60,6 +60,13 @@ touched something: no arrival is taken in contact (keyframes were taken clear of
 navigator reverses the push for ``contact_reverse_s`` and recovers as below. Robots without the flag
 never report contact.
 
+A subgoal whose view has changed (posters moved or taken down since the teach run) may never verify.
+When a subgoal gave no usable geometry for ``lost_after_steps`` periods from the moment it became the
+target, and the node before it was the last to verify well, the navigator first drives the taught
+step between them (:meth:`Navigator._taught_step`: straight ahead, its distance and turn from the two
+keyframes' images), heading held by the previous keyframe's view, watching for the subgoal or the node
+after it to verify; the servo takes over from whichever does. Only then is the subgoal lost.
+
 Recovery (docs/theory.md section 4.4). After ``lost_after_steps`` periods without usable geometry,
 when a subgoal is not reached within ``subgoal_timeout_s``, a look-alike fooled the goal's settle
 test or the bumper reports the way blocked, the navigator stops and
@@ -112,7 +119,7 @@ from topomap.relative_motion import SCALE_CLIP_FACTOR, KeyframePairs
 from topomap.retrieval import thumbnail_descriptor
 from topomap.servo.essential import rotation_y
 from topomap.servo.pose import PoseStatus, RelativePose
-from topomap.servo.relpose import relative_pose
+from topomap.servo.relpose import relative_pose, relative_pose_with_scales
 from topomap.servo.servo import AppearanceServo, ServoOutput, ServoStatus
 
 __all__ = ["RobotLike", "NavStatus", "EventKind", "NavEvent", "NavOutcome", "Navigator"]
@@ -378,6 +385,8 @@ class _Leg:
     i: int = 0
     lost: int = 0
     turning: int = 0  # blind periods spent turning toward a subgoal outside the view
+    seen: bool = False  # the subgoal gave the servo usable geometry since it became the target
+    bridged: bool = False  # the taught step to the subgoal was driven blind (:meth:`Navigator._bridge`)
 
 
 class Navigator:
@@ -433,6 +442,7 @@ class Navigator:
         self._confirmed: tuple[int, float] | None = None
         self._commanded_m = 0.0  # distance commanded so far (translation, compensation included) [m]
         self._floor_graph: nx.Graph | None = None  # the map's edges weighted by their floor length
+        self._steps: dict[tuple[int, int], tuple[float, float, float] | None] = {}  # taught steps (_taught_step)
         # commands sent since the last good verification (what backing off inverts)
         self._trail: deque[Command] = deque(maxlen=self._periods(self.config.recover_backoff_s))
         self._tried: dict[str, float] = {}  # what recovery did, for the final message
@@ -765,6 +775,7 @@ class Navigator:
             yield NavEvent(EventKind.STEP, self._time, s.status.value, subgoal=sub, route=tuple(nodes), servo=s,
                            command=s.command, image=image, matches=(cur_px, goal_px))
             self._estimate = s.disturbance
+            leg.seen = leg.seen or s.status is not ServoStatus.LOST
             if v.inliers >= cfg.switch_min_inliers and s.status is not ServoStatus.LOST:
                 self._last_good = sub
                 self._confirmed = (sub, self._commanded_m)
@@ -804,6 +815,7 @@ class Navigator:
                     out.subgoals_reached += 1
                     leg.since_switch_s = self._time
                     leg.lost = leg.turning = 0
+                    leg.seen = leg.bridged = False
                     self._target(nodes, leg.i, prior if prior is not None and math.isfinite(prior) else None)
                     yield NavEvent(EventKind.SUBGOAL, self._time, f"reached {sub} ({reason}); next {nodes[leg.i]}",
                                    subgoal=nodes[leg.i], route=tuple(nodes))
@@ -814,6 +826,23 @@ class Navigator:
             else:
                 leg.lost = leg.lost + 1 if s.status is ServoStatus.LOST else 0
                 leg.turning = leg.turning if s.status is ServoStatus.LOST else 0
+            if (leg.lost >= cfg.lost_after_steps and not leg.seen and not leg.bridged and i > 0
+                    and nodes[i - 1] == self._last_good):
+                leg.bridged = True
+                j = self._bridge(nodes, i)
+                if j is not None:  # a view of the route verifies again: the servo takes over from there
+                    leg.lost = leg.turning = 0
+                    leg.since_switch_s = self._time
+                    step = f"drove the taught step from {nodes[i - 1]} (the view of {sub} did not verify)"
+                    if j > i:
+                        leg.i, leg.seen, leg.bridged = j, False, False
+                        out.subgoals_reached += 1
+                        msg = f"reached {sub} ({step}); next {nodes[j]}"
+                    else:
+                        msg = f"{step}; {sub} verifies now"
+                    self._target(nodes, leg.i)
+                    yield NavEvent(EventKind.SUBGOAL, self._time, msg, subgoal=nodes[leg.i], route=tuple(nodes))
+                    continue
             stuck = (self._time - leg.since_switch_s > cfg.subgoal_timeout_s if not final else
                      leg.settle.not_approaching(cfg.goal_no_progress_s, cfg.goal_no_progress_m))
             fooled = leg.settle.false_arrival >= cfg.lost_after_steps
@@ -848,6 +877,77 @@ class Navigator:
                                route=tuple(leg.nodes))
                 continue
             self._move(s.command, trail=True)
+
+    def _bridge(self, nodes: list[int], i: int) -> int | None:
+        """Drive the taught step from ``nodes[i - 1]`` (where the robot is: the last node that verified
+        well) to ``nodes[i]``, whose view never verified, disturbances compensated, up to a quarter
+        beyond it, watching for ``nodes[i]`` or the node after it to verify (``switch_min_inliers``).
+        The heading follows the step's turn by the view of ``nodes[i - 1]`` while that verifies (a
+        visual compass: the estimated yaw disturbance alone let a harsh one turn the robot 40 deg in
+        6 s). Returns the index of the node that verified; None when the step is not straight
+        (:meth:`_taught_step`), neither verified or the bumper reported contact (recovery's back-off
+        undoes the step: it is on the trail)."""
+        cfg, prev = self.config, nodes[i - 1]
+        step = self._taught_step(prev, nodes[i])
+        if step is None:
+            return None
+        dist, bearing, turn = step
+        periods = self._periods(dist / cfg.bridge_speed_mps)
+        duration = periods * cfg.control_period_s
+        max_turn = self.servo.config.max_turn_rps
+        self._count("taught steps driven blind")
+        for k in range(periods + periods // 4):
+            _, q = self._look()
+            for j, node in enumerate(nodes[i:i + 2]):
+                if self._match(q, node).inliers >= cfg.switch_min_inliers:
+                    return i + j
+            hold = self._hold_command()
+            pose = self._pose_against(q, self.map.nodes[prev].features, self.map.camera)
+            steer = 0.0
+            if pose is not None and pose.has_heading:  # the turn so far, as planned, minus the one seen
+                steer = float(np.clip(min(1.0, k / periods) * turn - pose.theta, -max_turn, max_turn))
+            if self.vehicle is VehicleKind.UNICYCLE:  # an arc whose chord has the step's bearing
+                cmd = Command(hold.v_f + cfg.bridge_speed_mps, hold.v_h, hold.omega + 2.0 * bearing / duration + steer)
+            else:
+                cmd = Command(hold.v_f + cfg.bridge_speed_mps * math.cos(bearing),
+                              hold.v_h + cfg.bridge_speed_mps * math.sin(bearing), hold.omega + turn / duration + steer)
+            if self._move(cmd.clipped(self.servo.config.max_speed_mps, max_turn).for_vehicle(self.vehicle), trail=True):
+                self._count("blind steps ended by contact")
+                break
+        self._hold()
+        return None
+
+    def _taught_step(self, a: int, b: int) -> tuple[float, float, float] | None:
+        """How the teach run drove from keyframe ``a`` to keyframe ``b`` of a sequential edge, from
+        their images: (distance [m], bearing of ``b`` from ``a`` [rad, left positive], heading of ``b``
+        relative to ``a`` [rad]); None unless it is a straight step forward within ``bridge_max_m``,
+        ``bridge_max_bearing_deg`` and ``bridge_max_turn_deg`` (camera height known). The distance is
+        the pair's in the median-depth convention times the keyframes' scale from their neighbours
+        (:meth:`KeyframePairs.goal_view`, as the servo's goal); the bearing is half the turn, as on
+        an arc the teach run drove forward: a pose's translation direction off a wall errs by 15-25 deg
+        where its heading errs by 2-4."""
+        cfg = self.config
+        if cfg.bridge_max_m is None or self._camera_height_m is None:
+            return None
+        if (a, b) not in self._steps:
+            self._steps[(a, b)] = None
+            edge, fa, fb = self.map.edge(a, b), self.map.nodes[a].features, self.map.nodes[b].features
+            v = verify(fb, fa, self.map.config.match) if edge is not None and edge.kind is EdgeKind.SEQUENTIAL else None
+            if v is not None and v.verified:
+                use = v.inlier_matches
+                pose, rho, _ = relative_pose_with_scales(fb.keypoints[use.ia], fa.keypoints[use.ib], self.map.camera,
+                                                         self.servo.config.geometry)
+                scales = [self.pairs.goal_view(n, self._camera_height_m, self.servo.config.nominal_scale_m)[1] for n in (b, a)]
+                scale = next((sc for sc in scales if sc is not None), None)
+                forward = pose.status is PoseStatus.OK and pose.x_s > 0 and abs(math.atan2(pose.z_s, pose.x_s)) <= math.pi / 4
+                if forward and rho is not None and scale is not None and math.isfinite(pose.theta):
+                    self._steps[(a, b)] = (rho * scale, 0.5 * pose.theta, pose.theta)
+        step = self._steps[(a, b)]
+        if step is None:
+            return None
+        dist, bearing, turn = step
+        straight = abs(turn) <= math.radians(cfg.bridge_max_turn_deg) and abs(bearing) <= math.radians(cfg.bridge_max_bearing_deg)
+        return step if straight and 0 < dist <= cfg.bridge_max_m else None
 
     def _blame_loop_closures(self, travelled: list[int]) -> None:
         """A leg failed after travelling ``travelled`` (up to the lost subgoal): count one failure
