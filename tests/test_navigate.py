@@ -1130,3 +1130,12 @@ def test_taught_step_settings_are_checked(field, value):
     with pytest.raises(ConfigError, match="bridge_"):
         NavigateConfig(**{field: value})
     assert NavigateConfig(bridge_max_m=None).bridge_max_m is None  # None: never drive a step blind
+
+
+def test_a_final_failure_tells_the_taught_steps_it_drove():
+    nav, _ = _blind_navigator()
+    assert "taught steps" not in nav._tried_summary()
+    nav._count("taught steps driven blind", 2)
+    assert nav._tried_summary() == "drove 2 taught steps past subgoals that did not verify"
+    nav._count("blind steps ended by contact")
+    assert nav._tried_summary().endswith("did not verify (1 ended at contact)")

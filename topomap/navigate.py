@@ -1139,6 +1139,10 @@ class Navigator:
             parts.append(f"distrusted {t['loop closures distrusted']:.0f} loop closures")
         if "arrivals the floor refused" in t:
             parts.append(f"took the floor's scale at the goal {t['arrivals the floor refused']:.0f} times")
+        if "taught steps driven blind" in t:
+            ended = t.get("blind steps ended by contact", 0)
+            parts.append(f"drove {t['taught steps driven blind']:.0f} taught steps past subgoals that did not verify"
+                         + (f" ({ended:.0f} ended at contact)" if ended else ""))
         return ", ".join(parts) or "nothing"
 
     def _turning_toward(self, s: ServoOutput) -> bool:
