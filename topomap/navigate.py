@@ -388,6 +388,12 @@ class _Leg:
     seen: bool = False  # the subgoal gave the servo usable geometry since it became the target
     bridged: bool = False  # the taught step to the subgoal was driven blind (:meth:`Navigator._bridge`)
 
+    def switch_to(self, i: int, time_s: float) -> None:
+        """Make ``nodes[i]`` the subgoal from ``time_s``: its own blind, turning, seen and bridged state."""
+        self.i, self.since_switch_s = i, time_s
+        self.lost = self.turning = 0
+        self.seen = self.bridged = False
+
 
 class Navigator:
     """Drives a robot to a goal node of ``tmap`` from images alone.
@@ -811,11 +817,8 @@ class Navigator:
                     # heading relative to the next subgoal = relative to this one + this one's relative to it
                     here = s.heading_error_rad if math.isfinite(s.heading_error_rad) else s.disturbance.theta
                     prior = here + self._keyframe_heading(sub, nodes[i + 1]) if math.isfinite(here) else None
-                    leg.i += 1
+                    leg.switch_to(leg.i + 1, self._time)
                     out.subgoals_reached += 1
-                    leg.since_switch_s = self._time
-                    leg.lost = leg.turning = 0
-                    leg.seen = leg.bridged = False
                     self._target(nodes, leg.i, prior if prior is not None and math.isfinite(prior) else None)
                     yield NavEvent(EventKind.SUBGOAL, self._time, f"reached {sub} ({reason}); next {nodes[leg.i]}",
                                    subgoal=nodes[leg.i], route=tuple(nodes))
@@ -831,14 +834,14 @@ class Navigator:
                 leg.bridged = True
                 j = self._bridge(nodes, i)
                 if j is not None:  # a view of the route verifies again: the servo takes over from there
-                    leg.lost = leg.turning = 0
-                    leg.since_switch_s = self._time
                     step = f"drove the taught step from {nodes[i - 1]} (the view of {sub} did not verify)"
                     if j > i:
-                        leg.i, leg.seen, leg.bridged = j, False, False
+                        leg.switch_to(j, self._time)
                         out.subgoals_reached += 1
                         msg = f"reached {sub} ({step}); next {nodes[j]}"
-                    else:
+                    else:  # the same subgoal, blind count restarted; its step is not driven twice
+                        leg.lost = leg.turning = 0
+                        leg.since_switch_s = self._time
                         msg = f"{step}; {sub} verifies now"
                     self._target(nodes, leg.i)
                     yield NavEvent(EventKind.SUBGOAL, self._time, msg, subgoal=nodes[leg.i], route=tuple(nodes))
@@ -906,11 +909,12 @@ class Navigator:
             steer = 0.0
             if pose is not None and pose.has_heading:  # the turn so far, as planned, minus the one seen
                 steer = float(np.clip(min(1.0, k / periods) * turn - pose.theta, -max_turn, max_turn))
-            if self.vehicle is VehicleKind.UNICYCLE:  # an arc whose chord has the step's bearing
-                cmd = Command(hold.v_f + cfg.bridge_speed_mps, hold.v_h, hold.omega + 2.0 * bearing / duration + steer)
+            omega = hold.omega + turn / duration + steer  # an arc: its chord has the step's bearing, half the turn
+            if self.vehicle is VehicleKind.UNICYCLE:
+                cmd = Command(hold.v_f + cfg.bridge_speed_mps, hold.v_h, omega)
             else:
                 cmd = Command(hold.v_f + cfg.bridge_speed_mps * math.cos(bearing),
-                              hold.v_h + cfg.bridge_speed_mps * math.sin(bearing), hold.omega + turn / duration + steer)
+                              hold.v_h + cfg.bridge_speed_mps * math.sin(bearing), omega)
             if self._move(cmd.clipped(self.servo.config.max_speed_mps, max_turn).for_vehicle(self.vehicle), trail=True):
                 self._count("blind steps ended by contact")
                 break
