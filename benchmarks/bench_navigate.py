@@ -59,10 +59,11 @@ def prepare_world(seed: int, cache: Path, textures: str | None = None) -> Path:
     from topomap.build import build_map
     from topomap.camera import load_camera
     from topomap.sim.teach import teach
-    from topomap.sim.world import default_world, generate_world
+    from topomap.sim.world import WORLD_VERSION, default_world, generate_world
     from topomap.store import save_map
 
-    folder = cache / (f"world{seed}" + (f"-{Path(textures).name}" if textures else ""))
+    # the world format in the name: a cache of worlds the generator made before is not taken for today's
+    folder = cache / (f"world{seed}" + (f"-{Path(textures).name}" if textures else "") + f"-w{WORLD_VERSION}")
     map_path = folder / "map.topomap"
     if map_path.is_file():
         return map_path

@@ -128,11 +128,12 @@ def prepare(spec: dict, cache: Path, teach_conditions: str | None) -> Path:
     from topomap.build import build_map
     from topomap.camera import load_camera
     from topomap.sim.teach import teach
-    from topomap.sim.world import generate_world
+    from topomap.sim.world import WORLD_VERSION, generate_world
     from topomap.store import save_map
 
     tex = texture_folder(spec["textures"], cache) if spec["textures"] else None
-    tag = f"world{spec['seed']}-{spec['style']}-{spec['textures'] or 'plain'}-{teach_conditions or 'none'}"
+    # the world format in the name: a cache of worlds the generator made before is not taken for today's
+    tag = f"world{spec['seed']}-{spec['style']}-{spec['textures'] or 'plain'}-{teach_conditions or 'none'}-w{WORLD_VERSION}"
     folder = cache / tag
     map_path = folder / "map.topomap"
     if map_path.is_file():

@@ -287,6 +287,8 @@ def world_attacks(base: dict, many: int = 6000) -> dict[str, dict | str]:
         "route_huge": with_(routes={"loop": {"closed": False, "waypoints": [[0.0, float(i)] for i in range(2 * many)]}}),
         "seed_text": with_(seed="x"),
         "name_huge": with_(name="n" * 10_000),
+        "tile_variants_huge": with_(tile_variants=10**9),
+        "free_floor_huge": with_(free=[[0.0, 0.0, 9000.0, 9000.0]]),  # 81 M cells for the renderer to cut
     }
     out["nested_arrays"] = '{"format": "topomap-world", "version": 1, "walls": ' + "[" * 200_000 + "]" * 200_000 + "}"
     return out

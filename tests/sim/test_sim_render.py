@@ -149,3 +149,51 @@ def test_renderer_rejects_cameras_it_cannot_honour(world):
     r.close()
     with pytest.raises(ConfigError, match="closed"):
         r.render((12.0, 8.0, 0.0))
+
+
+def test_a_floor_of_texture_variants_does_not_verify_another_place():
+    # one floor texture tiled every 2 m matches itself pixel for pixel everywhere: from world 257's
+    # office a view of the floor verified a place 16 m away with 17-21 inliers, all on the floor
+    from topomap.config import BuildConfig
+    from topomap.features import extract
+    from topomap.images import to_gray_u8
+    from topomap.matching import verify
+
+    cfg = BuildConfig()
+    office = generate_world(257, style="office")
+    assert office.tile_variants > 1
+    elsewhere, here = (9.66, 23.75, math.pi), (9.84, 7.66, 0.2)
+    looks = [(here[0], here[1], here[2] + math.radians(a)) for a in (150, 165, 180)]
+    inliers = {}
+    for variants in (1, office.tile_variants):
+        with PyBulletRenderer(replace(office, tile_variants=variants), default_camera()) as r:
+            features = [extract(to_gray_u8(r.render(p)), cfg.features) for p in [elsewhere, *looks]]
+            inliers[variants] = [verify(f, features[0], cfg.match).inliers for f in features[1:]]
+    assert min(inliers[1]) >= cfg.match.min_inliers  # the premise: the periodic floor aliases
+    assert max(inliers[office.tile_variants]) < cfg.match.min_inliers
+
+
+def test_tile_variants_keep_the_floor_and_leave_a_periodic_world_as_it_was(world):
+    from topomap.sim import textures as tx
+    from topomap.sim.render import _tile_cells, _tile_variant
+
+    periodic = replace(world, tile_variants=1)
+    with PyBulletRenderer(world, default_camera(160, 120)) as r1, PyBulletRenderer(periodic, default_camera(160, 120)) as r2:
+        pose = world.route("loop").points[0]
+        a, b = r1.render((pose[0], pose[1], 0.3)), r2.render((pose[0], pose[1], 0.3))
+        assert a.shape == b.shape and not np.array_equal(a[80:], b[80:])  # the floor differs ...
+        assert len(r2._floor_bodies) == len(world.free)  # ... and the periodic world is drawn as before
+    # a variant is the same floor: its base colour, other details; a photograph is turned or mirrored
+    base, other = tx.texture_variant(world.floor_texture, 0), tx.texture_variant(world.floor_texture, 3)
+    assert np.array_equal(base, tx.texture_image(world.floor_texture)) and not np.array_equal(base, other)
+    assert np.abs(np.median(base.reshape(-1, 3), 0) - np.median(other.reshape(-1, 3), 0)).max() < 30
+    photo = next(w.texture for w in world.walls if w.texture.startswith("photo:"))
+    img = tx.texture_image(photo)
+    assert np.array_equal(tx.texture_variant(photo, 1), np.rot90(img, 1))
+    assert np.array_equal(tx.texture_variant(photo, 4), img[:, ::-1])
+    # cells cut at the texture's period cover the free floor exactly, and their variants spread
+    cells = _tile_cells(world, tx.FLOOR_TILE_M)
+    area = sum((c[2] - c[0]) * (c[3] - c[1]) for c in cells)
+    assert area == pytest.approx(sum((f.x1 - f.x0) * (f.z1 - f.z0) for f in world.free))
+    used = {_tile_variant(c[0], c[1], tx.FLOOR_TILE_M, world.tile_variants) for c in cells}
+    assert len(used) >= world.tile_variants // 2

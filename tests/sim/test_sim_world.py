@@ -14,7 +14,7 @@ import pytest
 
 from topomap.errors import ConfigError, DatasetError
 from topomap.sim import textures as tx
-from topomap.sim.world import World, default_world, generate_world, load_world, resolve_world
+from topomap.sim.world import TILE_VARIANTS, World, default_world, generate_world, load_world, resolve_world
 
 from sim.sim_helpers import box_world
 
@@ -185,6 +185,21 @@ def test_world_validation():
     assert World.from_dict(data) == good
 
 
+def test_tile_variants_in_world_files(tmp_path, world):
+    assert world.tile_variants == TILE_VARIANTS > 1  # generated worlds: a floor that never repeats
+    data = world.to_dict()
+    assert data["version"] == 2 and data["tile_variants"] == TILE_VARIANTS
+    old = {k: v for k, v in data.items() if k != "tile_variants"}
+    old["version"] = 1  # written before variants: one texture tiled everywhere, as it was taught
+    assert World.from_dict(old).tile_variants == 1
+    for bad in (0, 65, "16", True, 2.5, None):
+        with pytest.raises(DatasetError, match="tile_variants"):
+            World.from_dict({**data, "tile_variants": bad})
+    huge = {**data, "free": [[0, 0, 400, 400]]}  # the renderer would cut it into 160 000 cells
+    with pytest.raises(DatasetError, match="more than the 100000 m2"):
+        World.from_dict(huge)
+
+
 def test_hostile_world_files_are_refused_before_anything_is_built(tmp_path, world):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from fuzz_cases import world_attacks
@@ -195,7 +210,8 @@ def test_hostile_world_files_are_refused_before_anything_is_built(tmp_path, worl
         "marker_radius_inf": "marker radius_m", "wall_height_huge": "wall height", "walls_not_list": "must be",
         "wall_short_row": "a wall must be", "many_walls": "6000 walls, more than the 5000",
         "route_huge": "at most 10000 waypoints", "seed_text": "seed must be", "name_huge": "longer than 200",
-        "nested_arrays": "nests its JSON too deeply",
+        "nested_arrays": "nests its JSON too deeply", "tile_variants_huge": "tile_variants",
+        "free_floor_huge": "more than the 100000 m2",
     }
     attacks = world_attacks(world.to_dict())
     assert set(attacks) == set(expected)

@@ -165,24 +165,25 @@ class PyBulletRenderer:
     def _build(self) -> None:
         p, cid, w = self._p, self._cid, self.world
         H = w.wall_height_m
-        keys = sorted({wl.texture for wl in w.walls} | {w.floor_texture, w.ceiling_texture})
-        tex_ids: dict[str, int] = {}
+        keys = sorted({(wl.texture, 0) for wl in w.walls}
+                      | {(t, k) for t in (w.floor_texture, w.ceiling_texture) for k in range(w.tile_variants)})
+        tex_ids: dict[tuple[str, int], int] = {}
         tex_w: dict[str, float] = {}
         with tempfile.TemporaryDirectory(prefix="topomap-tex-") as tmp:
-            for i, key in enumerate(keys):
-                img = tx.texture_image(key, w.texture_dir)
+            for i, (key, k) in enumerate(keys):
+                img = tx.texture_variant(key, k, w.texture_dir)
                 path = Path(tmp) / f"{i}.png"
                 cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-                tex_ids[key] = p.loadTexture(str(path), physicsClientId=cid)
+                tex_ids[key, k] = p.loadTexture(str(path), physicsClientId=cid)
                 tex_w[key] = H * img.shape[1] / img.shape[0]
 
-        def mesh(vertices, uvs, indices, normal, key) -> int:
+        def mesh(vertices, uvs, indices, normal, key, variant: int = 0) -> int:
             vs = p.createVisualShape(
                 p.GEOM_MESH, vertices=vertices, indices=indices, uvs=uvs, normals=[normal] * len(vertices),
                 physicsClientId=cid,
             )
             body = p.createMultiBody(baseMass=0, baseVisualShapeIndex=vs, physicsClientId=cid)
-            p.changeVisualShape(body, -1, textureUniqueId=tex_ids[key], rgbaColor=[1, 1, 1, 1], physicsClientId=cid)
+            p.changeVisualShape(body, -1, textureUniqueId=tex_ids[key, variant], rgbaColor=[1, 1, 1, 1], physicsClientId=cid)
             return body
 
         # Quads are cut into cells of cell_m: TinyRenderer tests every pixel of a triangle's bounding
@@ -206,21 +207,29 @@ class PyBulletRenderer:
             self._wall_bodies.append(mesh(verts, uvs, idx, [nx_, nz_, 0.0], wl.texture))
         self._floor_bodies, self._ceiling_bodies = [], []
         ft, ct = tx.FLOOR_TILE_M, tx.CEILING_TILE_M
-        for r in w.free:
-            nxc = max(1, math.ceil((r.x1 - r.x0) / self._cell))
-            nzc = max(1, math.ceil((r.z1 - r.z0) / self._cell))
-            xs = np.linspace(r.x0, r.x1, nxc + 1)
-            zs = np.linspace(r.z0, r.z1, nzc + 1)
+
+        def surface(r, period: float, height: float, key: str) -> int:
+            """One body of floor (height 0) or ceiling over the rectangle ``r``, texture variant by position."""
+            nxc = max(1, math.ceil((r[2] - r[0]) / self._cell))
+            nzc = max(1, math.ceil((r[3] - r[1]) / self._cell))
+            xs = np.linspace(r[0], r[2], nxc + 1)
+            zs = np.linspace(r[1], r[3], nzc + 1)
             grid = [(float(x), float(z)) for z in zs for x in xs]
-            up, down = [], []
+            tris = []
             for j in range(nzc):
                 for i in range(nxc):
                     a, b = j * (nxc + 1) + i, j * (nxc + 1) + i + 1
                     c, d = a + nxc + 1, b + nxc + 1
-                    up += [a, b, d, a, d, c]  # counter-clockwise seen from above
-                    down += [a, d, b, a, c, d]  # ... and from below
-            self._floor_bodies.append(mesh([[x, z, 0.0] for x, z in grid], [[x / ft, z / ft] for x, z in grid], up, [0, 0, 1], w.floor_texture))
-            self._ceiling_bodies.append(mesh([[x, z, H] for x, z in grid], [[x / ct, z / ct] for x, z in grid], down, [0, 0, -1], w.ceiling_texture))
+                    # counter-clockwise seen from above (the floor) or from below (the ceiling)
+                    tris += [a, b, d, a, d, c] if height == 0.0 else [a, d, b, a, c, d]
+            variant = _tile_variant(r[0], r[1], period, w.tile_variants)
+            return mesh([[x, z, height] for x, z in grid], [[x / period, z / period] for x, z in grid], tris,
+                        [0, 0, 1 if height == 0.0 else -1], key, variant)
+
+        floor_rects = _tile_cells(w, ft)
+        ceiling_rects = _tile_cells(w, ct)
+        self._floor_bodies = [surface(r, ft, 0.0, w.floor_texture) for r in floor_rects]
+        self._ceiling_bodies = [surface(r, ct, H, w.ceiling_texture) for r in ceiling_rects]
         for m in w.markers:
             vs = p.createVisualShape(p.GEOM_SPHERE, radius=m.radius_m, rgbaColor=[c / 255.0 for c in m.color] + [1.0], physicsClientId=cid)
             p.createMultiBody(baseMass=0, baseVisualShapeIndex=vs, basePosition=[m.x, m.z, m.height_m], physicsClientId=cid)
@@ -229,7 +238,8 @@ class PyBulletRenderer:
         seg = w.segments
         self._seg_a = seg[:, 0:2]
         self._seg_d = seg[:, 2:4] - seg[:, 0:2]
-        self._rects = np.array([[r.x0, r.z0, r.x1, r.z1] for r in w.free])
+        self._floor_rects = np.array(floor_rects)
+        self._ceiling_rects = self._floor_rects if ceiling_rects == floor_rects else np.array(ceiling_rects)
         log.debug("PyBullet scene: %d wall panels, %d floor/ceiling tiles, %d textures", len(self._wall_bodies), len(w.free), len(keys))
 
     # ------------------------------------------------------------------ visibility
@@ -259,7 +269,13 @@ class PyBulletRenderer:
         walls = near.any(axis=0)
         # Floor/ceiling tiles crossed by a ray before its first wall (slab test, rays x rects).
         reach = np.where(np.isfinite(t_first), t_first + 0.05, self._far)[:, None]
-        r = self._rects
+        floor = self._crossed(self._floor_rects, x, z, d, reach)
+        ceiling = floor if self._ceiling_rects is self._floor_rects else self._crossed(self._ceiling_rects, x, z, d, reach)
+        return np.concatenate([walls, floor, ceiling])
+
+    @staticmethod
+    def _crossed(r: np.ndarray, x: float, z: float, d: np.ndarray, reach: np.ndarray) -> np.ndarray:
+        """Which rectangles ``r`` (R, 4) the rays ``d`` (W, 2) from ``(x, z)`` cross before ``reach`` (W, 1)."""
         dx, dz = d[:, 0:1], d[:, 1:2]
         with np.errstate(divide="ignore", invalid="ignore"):
             tx0, tx1 = (r[None, :, 0] - x) / dx, (r[None, :, 2] - x) / dx
@@ -270,8 +286,7 @@ class PyBulletRenderer:
         tmin = np.maximum(np.nan_to_num(np.minimum(tx0, tx1), nan=-np.inf), np.nan_to_num(np.minimum(tz0, tz1), nan=-np.inf))
         tmax = np.minimum(np.nan_to_num(np.maximum(tx0, tx1), nan=np.inf), np.nan_to_num(np.maximum(tz0, tz1), nan=np.inf))
         enter = np.maximum(tmin, 0.0)
-        tiles = (in_x & in_z & (tmax >= enter) & (enter <= reach)).any(axis=0)
-        return np.concatenate([walls, tiles, tiles])
+        return (in_x & in_z & (tmax >= enter) & (enter <= reach)).any(axis=0)
 
     def _apply_visibility(self, mask: np.ndarray) -> None:
         p, cid = self._p, self._cid
@@ -317,6 +332,28 @@ class PyBulletRenderer:
 
     def __del__(self) -> None:  # pragma: no cover - best effort
         self.close()
+
+
+def _tile_cells(world: World, period: float) -> list[tuple[float, float, float, float]]:
+    """The free floor's rectangles ``(x0, z0, x1, z1)``: as they are when the world tiles one texture,
+    else cut at every multiple of ``period`` so that each texture tile can show its own variant."""
+    if world.tile_variants == 1:
+        return [(r.x0, r.z0, r.x1, r.z1) for r in world.free]
+    cells = []
+    for r in world.free:
+        xs = [r.x0] + [k * period for k in range(math.floor(r.x0 / period) + 1, math.ceil(r.x1 / period))] + [r.x1]
+        zs = [r.z0] + [k * period for k in range(math.floor(r.z0 / period) + 1, math.ceil(r.z1 / period))] + [r.z1]
+        cells += [(x0, z0, x1, z1) for z0, z1 in zip(zs, zs[1:]) for x0, x1 in zip(xs, xs[1:]) if x1 > x0 and z1 > z0]
+    return cells
+
+
+def _tile_variant(x0: float, z0: float, period: float, variants: int) -> int:
+    """Texture variant of the tile whose cell starts at ``(x0, z0)``: a spatial hash of the tile's index
+    (Teschner et al.'s primes), the same on every machine; 0 when the world tiles one texture."""
+    if variants == 1:
+        return 0
+    i, j = math.floor(x0 / period + 1e-9), math.floor(z0 / period + 1e-9)
+    return ((i * 73856093) ^ (j * 19349663)) % variants
 
 
 #: Rendering backends: name -> factory ``(world, camera, camera_height_m) -> Renderer``.

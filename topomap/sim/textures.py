@@ -37,6 +37,7 @@ __all__ = [
     "check_texture_key",
     "texture_width_m",
     "FLOOR_TILE_M",
+    "texture_variant",
     "CEILING_TILE_M",
 ]
 
@@ -164,6 +165,26 @@ def texture_image(key: str, texture_dir: str | Path | None = None) -> np.ndarray
     raise DatasetError(f"texture key {key!r} is not of the form photo:NAME[:flip], user:FILE[:flip] or proc:KIND:SEED")
 
 
+def texture_variant(key: str, k: int, texture_dir: str | Path | None = None) -> np.ndarray:
+    """Variant ``k`` of texture ``key`` (0: the texture itself): a procedural texture drawn again from
+    another random stream of the same kind and seed; a photograph turned and mirrored (the eight
+    symmetries of a square, then again). Floors and ceilings tile variants so that they never repeat
+    pixel for pixel (:attr:`topomap.sim.world.World.tile_variants`)."""
+    k = int(k)
+    if k == 0:
+        return texture_image(key, texture_dir)
+    check_texture_key(key)
+    kind, _, rest = str(key).partition(":")
+    if kind == "proc":
+        name, _, seed = rest.partition(":")
+        return _procedural(name, int(seed), k)
+    img = texture_image(key, texture_dir)
+    img = np.rot90(img, k % 4)
+    img = np.ascontiguousarray(img[:, ::-1] if (k // 4) % 2 else img)
+    img.setflags(write=False)
+    return img
+
+
 def texture_width_m(key: str, texture_dir: str | Path | None, height_m: float) -> float:
     """Width [m] one copy of a wall texture spans when its height is stretched to ``height_m``."""
     img = texture_image(key, texture_dir)
@@ -265,12 +286,14 @@ def _panels(rng: np.random.Generator) -> np.ndarray:
     return _noise(rng, img, 5.0)
 
 
-def _tiles(rng: np.random.Generator) -> np.ndarray:
-    """Floor: 4 x 4 tiles of 0.5 m with grout, tint and speckles (features near the robot)."""
+def _tiles(rng: np.random.Generator, detail: np.random.Generator | None = None) -> np.ndarray:
+    """Floor: 4 x 4 tiles of 0.5 m with grout, tint and speckles (features near the robot). ``detail``
+    draws all but the base colour (a variant of the same floor: :func:`texture_variant`)."""
     s = _PROC_PX
     n = 4
     t = s // n
     base = np.array(_colour(rng, 90, 170), np.float32)
+    rng = rng if detail is None else detail
     img = np.empty((s, s, 3), np.float32)
     for i in range(n):
         for j in range(n):
@@ -288,12 +311,13 @@ def _tiles(rng: np.random.Generator) -> np.ndarray:
     return img
 
 
-def _ceiling(rng: np.random.Generator) -> np.ndarray:
-    """Ceiling: 4 x 4 acoustic tiles of 0.6 m, perforated, with one light panel."""
+def _ceiling(rng: np.random.Generator, detail: np.random.Generator | None = None) -> np.ndarray:
+    """Ceiling: 4 x 4 acoustic tiles of 0.6 m, perforated, with one light panel (``detail``: as :func:`_tiles`)."""
     s = _PROC_PX
     n = 4
     t = s // n
     img = np.full((s, s, 3), _colour(rng, 200, 235), np.uint8)
+    rng = rng if detail is None else detail
     img = _noise(rng, img, 8.0)
     k = 700
     ys, xs = rng.integers(0, s, k), rng.integers(0, s, k)
@@ -416,14 +440,22 @@ PROCEDURAL: dict[str, Callable[[np.random.Generator], np.ndarray]] = {
 }
 
 
+#: Kinds that take a second generator for the details of a variant (``texture_variant``).
+_SURFACES = frozenset({"tiles", "ceiling"})
+
 # Each kind's random stream; fixed so that adding a kind never changes the pixels of existing worlds.
 _KIND_STREAM = {"board": 0, "bricks": 1, "ceiling": 2, "panels": 3, "poster": 4, "tiles": 5,
                 "paint": 6, "fitting": 7, "door": 8, "frame": 9}
 
 
 @functools.lru_cache(maxsize=128)
-def _procedural(name: str, seed: int) -> np.ndarray:
-    img = PROCEDURAL[name](np.random.default_rng([seed, _KIND_STREAM[name]]))
+def _procedural(name: str, seed: int, variant: int = 0) -> np.ndarray:
+    rng = np.random.default_rng([seed, _KIND_STREAM[name]])
+    if variant == 0:
+        img = PROCEDURAL[name](rng)
+    else:  # another draw: of the details only for a floor or ceiling (same base colour), else of everything
+        detail = np.random.default_rng([seed, _KIND_STREAM[name], variant])
+        img = PROCEDURAL[name](rng, detail) if name in _SURFACES else PROCEDURAL[name](detail)
     img = np.ascontiguousarray(img, dtype=np.uint8)
     img.setflags(write=False)
     return img

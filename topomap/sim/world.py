@@ -48,7 +48,7 @@ __all__ = [
 ]
 
 WORLD_FORMAT = "topomap-world"
-WORLD_VERSION = 1
+WORLD_VERSION = 2  # 2: tile_variants (a file of version 1 has none: one floor and ceiling texture tiled everywhere)
 WALL_HEIGHT_M = 2.5
 GRID_M = 0.25  # occupancy-grid cell of the generator [m]
 WALL_THICKNESS_M = 0.5  # solid margin kept between two free spaces [m]
@@ -66,6 +66,10 @@ MAX_MARKERS = 1000
 MAX_TEXTURES = 1024  # distinct texture keys: each becomes an image in memory
 MAX_EXTENT_M = 10_000.0  # |coordinate| bound [m]
 MAX_WALL_HEIGHT_M = 100.0
+MAX_FREE_AREA_M2 = 100_000.0  # the renderer cuts the free floor into cells of about a metre: bounded work
+MAX_TILE_VARIANTS = 64
+#: Floor and ceiling texture variants of a generated world (World.tile_variants).
+TILE_VARIANTS = 16
 
 
 @dataclass(frozen=True)
@@ -147,7 +151,11 @@ class World:
     ``walls``: wall panels; ``free``: the free floor as disjoint rectangles (floor and ceiling are
     drawn over them); ``routes``: named waypoint polylines; ``markers``: small coloured balls;
     ``floor_texture`` / ``ceiling_texture``: texture keys tiled every ``textures.FLOOR_TILE_M`` /
-    ``CEILING_TILE_M``; ``texture_dir``: the user's photograph folder for ``user:`` textures (None:
+    ``CEILING_TILE_M``; ``tile_variants``: each such tile shows one of this many variants of its texture
+    (:func:`~topomap.sim.textures.texture_variant`), chosen by a hash of its position — a floor of one
+    texture repeated every 2 m matches itself pixel for pixel at every place, and a camera seeing
+    mostly floor then verifies a place 16 m away as well as its own (1: that periodic floor, as world
+    files of version 1 have); ``texture_dir``: the user's photograph folder for ``user:`` textures (None:
     only shipped and procedural textures); ``seed``: the generator seed (None if hand-made).
     """
 
@@ -158,6 +166,7 @@ class World:
     wall_height_m: float = WALL_HEIGHT_M
     floor_texture: str = "proc:tiles:0"
     ceiling_texture: str = "proc:ceiling:0"
+    tile_variants: int = 1
     texture_dir: str | None = None
     seed: int | None = None
     name: str = "world"
@@ -166,6 +175,9 @@ class World:
     def __post_init__(self) -> None:
         for name in ("walls", "free", "routes", "markers"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
+        if isinstance(self.tile_variants, bool) or not isinstance(self.tile_variants, int) or not (
+                1 <= self.tile_variants <= MAX_TILE_VARIANTS):
+            raise DatasetError(f"tile_variants {str(self.tile_variants)[:30]} must be a whole number from 1 to {MAX_TILE_VARIANTS}")
         if not (math.isfinite(self.wall_height_m) and self.wall_height_m > 0):
             raise DatasetError(f"wall height {self.wall_height_m} must be a positive number of metres")
         if not self.walls:
@@ -222,6 +234,7 @@ class World:
             "wall_height_m": self.wall_height_m,
             "floor_texture": self.floor_texture,
             "ceiling_texture": self.ceiling_texture,
+            "tile_variants": self.tile_variants,
             "texture_dir": self.texture_dir,
             "walls": [[_r(w.x0), _r(w.z0), _r(w.x1), _r(w.z1), w.texture] for w in self.walls],
             "free": [[_r(f.x0), _r(f.z0), _r(f.x1), _r(f.z1)] for f in self.free],
@@ -259,6 +272,7 @@ class World:
                 wall_height_m=float(d.get("wall_height_m", WALL_HEIGHT_M)),
                 floor_texture=str(d.get("floor_texture", "proc:tiles:0")),
                 ceiling_texture=str(d.get("ceiling_texture", "proc:ceiling:0")),
+                tile_variants=d.get("tile_variants", 1),
                 texture_dir=None if d.get("texture_dir") is None else str(d["texture_dir"]),
                 seed=None if d.get("seed") is None else int(d["seed"]),
                 name=str(d.get("name", "world")),
@@ -316,11 +330,15 @@ def _check_limits(d: dict) -> None:
             raise DatasetError("a wall must be [x0, z0, x1, z1, texture]")
         for v in w[:4]:
             finite(v, "wall coordinate")
+    area = 0.0
     for f in free:
         if not isinstance(f, list) or len(f) != 4:
             raise DatasetError("a free rectangle must be [x0, z0, x1, z1]")
         for v in f:
             finite(v, "free-floor coordinate")
+        area += abs((f[2] - f[0]) * (f[3] - f[1]))
+    if area > MAX_FREE_AREA_M2:
+        raise DatasetError(f"its free floor covers {area:.0f} m2, more than the {MAX_FREE_AREA_M2:.0f} m2 topomap renders")
     for name, r in routes.items():
         pts = r.get("waypoints") if isinstance(r, dict) else None
         if not isinstance(pts, list) or len(pts) > MAX_WAYPOINTS:
@@ -581,6 +599,7 @@ def generate_world(
         wall_height_m=float(wall_height_m),
         floor_texture=floor,
         ceiling_texture=ceiling,
+        tile_variants=TILE_VARIANTS,
         texture_dir=None if textures is None else str(Path(textures).resolve()),
         seed=int(seed),
         name=name or (f"seed{int(seed)}" if style == "default" else f"{style}{int(seed)}"),
