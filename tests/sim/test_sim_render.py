@@ -195,5 +195,5 @@ def test_tile_variants_keep_the_floor_and_leave_a_periodic_world_as_it_was(world
     cells = _tile_cells(world, tx.FLOOR_TILE_M)
     area = sum((c[2] - c[0]) * (c[3] - c[1]) for c in cells)
     assert area == pytest.approx(sum((f.x1 - f.x0) * (f.z1 - f.z0) for f in world.free))
-    used = {_tile_variant(c[0], c[1], tx.FLOOR_TILE_M, world.tile_variants) for c in cells}
+    used = {_tile_variant((c[0] + c[2]) / 2, (c[1] + c[3]) / 2, tx.FLOOR_TILE_M, world.tile_variants) for c in cells}
     assert len(used) >= world.tile_variants // 2

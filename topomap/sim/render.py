@@ -205,7 +205,6 @@ class PyBulletRenderer:
                 b0, t0, b1, t1 = 2 * k, 2 * k + 1, 2 * k + 2, 2 * k + 3
                 idx += [b0, t0, t1, b0, t1, b1]
             self._wall_bodies.append(mesh(verts, uvs, idx, [nx_, nz_, 0.0], wl.texture))
-        self._floor_bodies, self._ceiling_bodies = [], []
         ft, ct = tx.FLOOR_TILE_M, tx.CEILING_TILE_M
 
         def surface(r, period: float, height: float, key: str) -> int:
@@ -222,7 +221,7 @@ class PyBulletRenderer:
                     c, d = a + nxc + 1, b + nxc + 1
                     # counter-clockwise seen from above (the floor) or from below (the ceiling)
                     tris += [a, b, d, a, d, c] if height == 0.0 else [a, d, b, a, c, d]
-            variant = _tile_variant(r[0], r[1], period, w.tile_variants)
+            variant = _tile_variant((r[0] + r[2]) / 2, (r[1] + r[3]) / 2, period, w.tile_variants)
             return mesh([[x, z, height] for x, z in grid], [[x / period, z / period] for x, z in grid], tris,
                         [0, 0, 1 if height == 0.0 else -1], key, variant)
 
@@ -240,7 +239,8 @@ class PyBulletRenderer:
         self._seg_d = seg[:, 2:4] - seg[:, 0:2]
         self._floor_rects = np.array(floor_rects)
         self._ceiling_rects = self._floor_rects if ceiling_rects == floor_rects else np.array(ceiling_rects)
-        log.debug("PyBullet scene: %d wall panels, %d floor/ceiling tiles, %d textures", len(self._wall_bodies), len(w.free), len(keys))
+        log.debug("PyBullet scene: %d wall panels, %d floor and %d ceiling cells, %d textures", len(self._wall_bodies),
+                  len(self._floor_bodies), len(self._ceiling_bodies), len(keys))
 
     # ------------------------------------------------------------------ visibility
     def visible(self, camera_pose: Pose) -> np.ndarray:
@@ -347,12 +347,13 @@ def _tile_cells(world: World, period: float) -> list[tuple[float, float, float, 
     return cells
 
 
-def _tile_variant(x0: float, z0: float, period: float, variants: int) -> int:
-    """Texture variant of the tile whose cell starts at ``(x0, z0)``: a spatial hash of the tile's index
-    (Teschner et al.'s primes), the same on every machine; 0 when the world tiles one texture."""
+def _tile_variant(x: float, z: float, period: float, variants: int) -> int:
+    """Texture variant of the tile holding the point ``(x, z)`` (a cell's centre: never on a tile edge):
+    a spatial hash of the tile's index (Teschner et al.'s primes), the same on every machine; 0 when
+    the world tiles one texture."""
     if variants == 1:
         return 0
-    i, j = math.floor(x0 / period + 1e-9), math.floor(z0 / period + 1e-9)
+    i, j = math.floor(x / period), math.floor(z / period)
     return ((i * 73856093) ^ (j * 19349663)) % variants
 
 
