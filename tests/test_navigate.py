@@ -1079,6 +1079,41 @@ def test_no_switch_while_the_floor_measures_the_subgoal_far():
         NavigateConfig(switch_floor_max_m=0.0)
 
 
+def test_a_subgoal_behind_waits_for_the_floor_before_a_switch():
+    """``moved`` world 254 ep 3 (omni, its route against the taught direction): a new subgoal's first
+    estimate was "0.31-0.35 m away" at a true 0.8-1.3 m, three switches cascaded in one period, and
+    the robot stood 1.8 m short of a subgoal whose posters had been moved, lost it and gave up. On a
+    taught chain walked backwards, where the subgoal's keyframe shows floor, no switch counts until
+    the floor has been read ``SWITCH_FLOOR_MIN_READINGS`` times, for at most ``SWITCH_FLOOR_PERIODS``
+    periods; then the readings decide as before, and a floor never read lets the other rules decide.
+    Routes along the taught direction do not wait."""
+    import types
+
+    from topomap.navigate import SWITCH_FLOOR_MIN_READINGS, SWITCH_FLOOR_PERIODS
+
+    h = 0.8
+    reading = lambda floor_m: types.SimpleNamespace(floor_distance_h=floor_m / h)  # noqa: E731
+    nav, _ = _blind_navigator(camera_height_m=h)
+    nav.shows_floor = lambda node: True  # noqa: ARG005  (the keyframes show floor)
+    a, b = sorted(nav.map.nodes)[:2]
+    assert nav.planner.against_taught(b, a) and not nav.planner.against_taught(a, b)
+    nav._target([a, b], 1)  # along the taught direction: nothing to wait for
+    assert not nav._subgoal_waits_for_floor and not nav._floor_says_far(reading(math.nan))
+    nav._target([b, a], 1)  # backwards: wait for three readings
+    assert nav._subgoal_waits_for_floor
+    held = [nav._floor_says_far(reading(0.3 if k % 2 else math.nan)) for k in range(2 * SWITCH_FLOOR_MIN_READINGS)]
+    assert all(held[:-1]) and not held[-1]  # held until the third reading, which says near
+    nav._target([b, a], 1)
+    never = [nav._floor_says_far(reading(math.nan)) for _ in range(SWITCH_FLOOR_PERIODS + 2)]
+    assert all(never[:SWITCH_FLOOR_PERIODS - 1]) and not any(never[SWITCH_FLOOR_PERIODS - 1:])
+    nav._target([b, a], 0)  # the route's first node: where the robot is
+    assert not nav._subgoal_waits_for_floor
+    unknown, _ = _blind_navigator()  # no camera height: no floor, no wait
+    unknown.shows_floor = lambda node: True  # noqa: ARG005
+    unknown._target([b, a], 1)
+    assert not unknown._subgoal_waits_for_floor and not unknown._floor_says_far(reading(math.nan))
+
+
 def test_a_subgoal_whose_view_no_longer_verifies_is_crossed_by_its_taught_step(taught):
     """Fresh world 250 under ``moved`` (posters swapped or taken down): node 71 kept 51 of ~600
     inliers at its own pose and none from the node before it; every re-localization ended back at

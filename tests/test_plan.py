@@ -350,6 +350,14 @@ def test_local_shortcuts_carry_the_taught_direction():
     assert p.route(9, 4).nodes == [9, 8, 7, 6, 5, 4]
 
 
+def test_against_taught_is_a_taught_chain_walked_backwards():
+    p = Planner(twin_walls())
+    assert p.against_taught(5, 4) and not p.against_taught(4, 5)  # a sequential edge
+    assert p.against_taught(13, 10) and not p.against_taught(10, 13)  # a shortcut along the chain
+    assert not p.against_taught(25, 5) and not p.against_taught(5, 25)  # a loop closure has no direction
+    assert not p.against_taught(29, 0) and not p.against_taught(3, 1)  # a manual edge; no edge at all
+
+
 # ----------------------------------------------------------------------------- distrusted loop closures
 def twin_walls() -> TopoMap:
     """One sequence 0..29 driven around; loop closures 5-25 and 6-26 (a pair claiming one revisit),

@@ -643,7 +643,8 @@ class NavigateConfig:
     # None of these counts while the floor measures the subgoal farther than this (median of the
     # last periods' readings, with the camera height known) [m]: on a view down a long corridor the
     # subgoal's scale from its neighbours can be several times too small and the nodes behind it
-    # match as well as it does, so the estimates say "reached" metres early; None: no such check.
+    # match as well as it does, so the estimates say "reached" metres early; on a taught chain walked
+    # backwards not before the floor has been read either (for at most a second); None: neither.
     switch_floor_max_m: float | None = 0.7
     settle_steps: int = 5  # the final goal counts as reached after this many converged steps in a row,
     # or when the servo stops making progress close to it: a docked unicycle cannot remove a small

@@ -19,7 +19,8 @@ counts as reached — and the next node becomes the target — when
 
 and in no case while the floor, with the camera height known, measures the subgoal farther than
 ``switch_floor_max_m`` (a view down a long corridor: the subgoal's scale from its neighbours can be
-several times too small, and the nodes behind it match as well as it does).
+several times too small, and the nodes behind it match as well as it does), nor, on a taught chain
+walked backwards, before the floor has been read (at most ``SWITCH_FLOOR_PERIODS`` periods).
 
 The final goal is reached when the servo reports convergence for ``settle_steps`` periods in a row,
 or when, aligned and close, it stops making progress (``settle_*`` in
@@ -442,6 +443,7 @@ class Navigator:
         self._here: int | None = None  # the node the robot was last localized at
         self._approach_side: float | None = None  # side of the subgoal camera the robot comes from
         self._subgoal_floor_m: deque[float] = deque(maxlen=SWITCH_FLOOR_PERIODS)  # the floor's distance to the subgoal [m]
+        self._subgoal_waits_for_floor = False
         self._last_good: int | None = None  # the last node that verified well
         # (node, distance commanded by then) where the track was last confirmed: what bounds how far
         # away the robot can be since
@@ -711,6 +713,10 @@ class Navigator:
         # taught direction, in front of it when driving the route backwards
         self._approach_side = None
         self._subgoal_floor_m.clear()  # the floor's distances to the previous subgoal
+        # a subgoal behind the camera (a taught chain walked backwards) whose keyframe shows floor
+        # waits for the floor before a switch counts (_floor_says_far)
+        self._subgoal_waits_for_floor = (i > 0 and self._camera_height_m is not None
+                                         and self.planner.against_taught(nodes[i - 1], nodes[i]) and self.shows_floor(nodes[i]))
         normals, scale = self.pairs.goal_view(nodes[i], self._camera_height_m, self.servo.config.nominal_scale_m)
         self.servo.retarget(normals, scale if i == len(nodes) - 1 else None, heading_prior)  # metric at the goal
         self.servo.reconfigure(**(self._goal_servo if i == len(nodes) - 1 else self._waypoint_servo))
@@ -1192,11 +1198,21 @@ class Navigator:
         ``SWITCH_FLOOR_PERIODS`` readings (at least ``SWITCH_FLOOR_MIN_READINGS`` of them measured)
         exceeds ``switch_floor_max_m``. Driving a straight corridor against the taught direction, each
         node behind looks down the same corridor: the servo said "0.19 m away" and the next node
-        "matched better" 1.2-2 m out, while the floor measured 1.0-1.8 m (fresh office world 259 ep 3)."""
+        "matched better" 1.2-2 m out, while the floor measured 1.0-1.8 m (fresh office world 259 ep 3).
+
+        On a taught chain walked backwards, also True while the floor has not been heard yet: fewer
+        than ``SWITCH_FLOOR_MIN_READINGS`` readings in the ``SWITCH_FLOOR_PERIODS`` periods since the
+        subgoal became the target, where its keyframe shows floor. Such a subgoal lies behind the
+        camera, and the first estimates of it are the ones most often several times short: switches
+        cascaded through three nodes in one period, to a subgoal 1.8 m behind whose posters had been
+        moved (``moved`` world 254 ep 3). Ahead of the camera a switch made early leaves the next
+        subgoal in view; behind it, each early switch takes the next one farther out of its view."""
         bound = self.config.switch_floor_max_m
         if bound is None or self._camera_height_m is None:
             return False
         self._subgoal_floor_m.append(self._floor_m(s))
         floor = np.array(self._subgoal_floor_m)
         floor = floor[np.isfinite(floor)]
-        return len(floor) >= SWITCH_FLOOR_MIN_READINGS and float(np.median(floor)) > bound
+        if len(floor) < SWITCH_FLOOR_MIN_READINGS:
+            return self._subgoal_waits_for_floor and len(self._subgoal_floor_m) < SWITCH_FLOOR_PERIODS
+        return float(np.median(floor)) > bound

@@ -174,6 +174,14 @@ class Planner:
         self._penalty.clear()
         self._distrusted.clear()
 
+    def against_taught(self, a: int, b: int) -> bool:
+        """Whether travelling ``a`` -> ``b`` walks a taught chain backwards (a sequential edge or a
+        shortcut along one, ``b`` taught before ``a``): the robot then comes at ``b``'s keyframe from
+        the front, with ``b`` behind the view it saw. False for an edge that is not in the graph."""
+        if not self._graph.has_edge(a, b):
+            return False
+        return bool(self._graph.edges[self._edge_key(a, b)].get("directed")) and b < a
+
     # ------------------------------------------------------------------ loop closures
     def is_loop_claim(self, a: int, b: int) -> bool:
         """Whether the edge ``a``-``b`` rests on appearance alone: a loop closure between nodes of
