@@ -178,9 +178,7 @@ class Planner:
         """Whether travelling ``a`` -> ``b`` walks a taught chain backwards (a sequential edge or a
         shortcut along one, ``b`` taught before ``a``): the robot then comes at ``b``'s keyframe from
         the front, with ``b`` behind the view it saw. False for an edge that is not in the graph."""
-        if not self._graph.has_edge(a, b):
-            return False
-        return bool(self._graph.edges[self._edge_key(a, b)].get("directed")) and b < a
+        return self._graph.has_edge(a, b) and _backwards(a, b, self._graph.edges[self._edge_key(a, b)])
 
     # ------------------------------------------------------------------ loop closures
     def is_loop_claim(self, a: int, b: int) -> bool:
@@ -262,7 +260,7 @@ class Planner:
         """Cost of travelling a -> b (networkx passes the node being expanded first)."""
         key = (min(a, b), max(a, b))
         w = data["cost"] * self._penalty.get(key, 1.0)
-        if data.get("directed") and b < a:  # node ids follow the taught order within a sequence
+        if _backwards(a, b, data):
             w *= self.config.reverse_factor
         if key in self._distrusted:
             w += DISTRUSTED_COST
@@ -312,3 +310,9 @@ class Planner:
             f"one of {len(comp_start)} nodes, node {goal} in one of {len(comp_goal)}; the map has {parts} parts); "
             f"link them by appending a sequence that passes through both places (topomap build --append)"
         )
+
+
+def _backwards(a: int, b: int, data: dict) -> bool:
+    """Whether ``a`` -> ``b`` along an edge with graph attributes ``data`` walks a taught chain backwards:
+    the edge has the taught direction (``directed``) and node ids follow the taught order within a sequence."""
+    return bool(data.get("directed")) and b < a
