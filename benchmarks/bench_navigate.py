@@ -28,6 +28,7 @@ Teach runs and maps are cached in ``--cache`` (default: a temporary folder).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
@@ -123,6 +124,7 @@ def run_one(args: tuple[str, Episode, str, str, float]) -> dict:
     map_path, ep, method, disturbance, budget = args
     from topomap.config import NavigateConfig, servo_preset
     from topomap.sim.episode import replay_episode, run_episode
+    from topomap.store import load_node_image
 
     m, world, poses, commands, loc = _load(map_path)
     t0 = time.perf_counter()
@@ -133,7 +135,8 @@ def run_one(args: tuple[str, Episode, str, str, float]) -> dict:
         servo = servo_preset("default" if method == "topomap" else "uncompensated")
         r = run_episode(m, world, ep.goal, poses, start_pose=ep.start_pose, vehicle=ep.vehicle,
                         disturbance=disturbance, seed=ep.seed, servo_config=servo, localizer=loc,
-                        navigate_config=NavigateConfig(time_budget_s_per_hop=budget))
+                        navigate_config=NavigateConfig(time_budget_s_per_hop=budget),
+                        keyframe_image=functools.partial(load_node_image, map_path))
     return {"world": ep.world, "episode": ep.index, "vehicle": ep.vehicle, "method": method,
             "start_node": ep.start_node, "goal": ep.goal, **r.to_dict(), "wall_s": round(time.perf_counter() - t0, 2)}
 

@@ -37,6 +37,7 @@ finish; ``--summarize LOG`` prints the table of a partial or finished log. Repla
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
@@ -53,6 +54,7 @@ import bench_navigate as bench  # noqa: E402  (episode drawing, the per-process 
 
 from topomap.config import NavigateConfig, preset_with_overrides, servo_preset  # noqa: E402
 from topomap.errors import ConfigError  # noqa: E402
+from topomap.store import load_node_image  # noqa: E402
 
 METHODS = bench.METHODS
 #: World seeds used for tuning so far; this benchmark refuses them unless --allow-tuning-worlds.
@@ -187,7 +189,8 @@ def run_one(job: dict) -> dict:
                             disturbance=job["disturbance"], seed=ep["seed"], servo_config=servo, localizer=loc,
                             navigate_config=config_overrides(NavigateConfig(time_budget_s_per_hop=job["budget_per_hop"]),
                                                             job.get("navigate"), "--navigate"),
-                            on_event=on_event, conditions=job["conditions"])
+                            on_event=on_event, conditions=job["conditions"],
+                            keyframe_image=functools.partial(load_node_image, job["map"]))
     finally:
         simulator.Simulator.__enter__ = enter
     row = {"world": ep["world"], "episode": ep["index"], "vehicle": ep["vehicle"], "method": job["method"],

@@ -18,6 +18,7 @@ episode whole (map, start, goal, seeds, conditions): ``--run LOG --world 103 --e
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import sys
 import tempfile
@@ -52,6 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     from topomap.navigate import EventKind
     from topomap.sim import simulator
     from topomap.sim.episode import goal_pose, run_episode
+    from topomap.store import load_node_image
 
     conditions = None
     if args.run is not None:
@@ -112,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
                     disturbance=args.disturbance, seed=ep.seed, localizer=loc,
                     servo_config=servo_preset("default" if args.method == "topomap" else "uncompensated"),
                     navigate_config=NavigateConfig(time_budget_s_per_hop=args.budget_per_hop), on_event=on_event,
-                    conditions=conditions)
+                    conditions=conditions, keyframe_image=functools.partial(load_node_image, map_path))
     print(r.to_dict())
     return 0 if r.success else 1
 

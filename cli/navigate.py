@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 from typing import Optional
@@ -107,7 +108,7 @@ def navigate(
     from topomap.groundtruth import read_poses
     from topomap.sim.demo import EpisodeRecorder
     from topomap.sim.episode import goal_pose, run_episode
-    from topomap.store import load_map
+    from topomap.store import load_map, load_node_image
 
     _check_rerun(rerun)
     m = load_map(map_path, images=record is not None or rerun is not None or rerun_spawn)  # keyframes for the drawings
@@ -145,7 +146,8 @@ def navigate(
     result = run_episode(m, w, goal, pose_table, start_pose=pose, start_node=start_node, vehicle=vehicle,
                          disturbance=disturbance or "none", seed=seed, servo_config=servo_cfg, on_event=listen,
                          on_truth=viewer.log_truth if viewer is not None else None,
-                         conditions=conditions if conditions is not None else taught_conditions)
+                         conditions=conditions if conditions is not None else taught_conditions,
+                         keyframe_image=functools.partial(load_node_image, map_path))
     data = _shown(result)
     files = rec.write_all(record, w, pose_table, result, data=data) if rec is not None else {}
     if viewer is not None and viewer.close() is not None:

@@ -1174,3 +1174,34 @@ def test_a_final_failure_tells_the_taught_steps_it_drove():
     assert nav._tried_summary() == "drove 2 taught steps past subgoals that did not verify"
     nav._count("blind steps ended by contact")
     assert nav._tried_summary().endswith("did not verify (1 ended at contact)")
+
+
+def test_the_near_floor_refuses_an_arrival_beside_the_goal(taught):
+    """Fresh world 289 ep 8: looking down a corridor, every matched point was 7-9 m away, and the
+    robot stood 0.3 m beside its goal, heading aligned, while the servo, the image and the matched
+    floor agreed it had arrived — far points cannot tell a sideways step from a turn. The near floor,
+    aligned pixel by pixel, measures the step: the arrival is refused and the servo docks on the
+    floor's pose; at the goal itself it is accepted; without the keyframe's image nothing changes."""
+    import functools
+    from types import SimpleNamespace
+
+    from topomap.config import NavigateConfig
+    from topomap.store import load_node_image
+
+    m, world, poses, path = taught
+    goal = sorted(m.nodes)[52]  # along a straight corridor
+    x, z, th = goal_pose(m, poses, goal)
+    beside = (x - 0.3 * math.sin(th), z + 0.3 * math.cos(th), th)
+    servo_says = SimpleNamespace(heading_error_rad=0.0)  # arrived, heading aligned
+    for pose, images, refused, near_m in ((beside, True, True, 0.3), ((x, z, th), True, False, 0.0),
+                                          (beside, False, False, None)):
+        with Simulator(world, vehicle="omni", start_pose=pose) as sim:
+            nav = Navigator(m, sim.robot, "omni", config=NavigateConfig(camera_height_m=sim.camera_height_m),
+                            keyframe_image=functools.partial(load_node_image, path) if images else None)
+            leg = nav._start_leg([goal])
+            assert nav._near_floor_refuses(leg, "precise", None, sim.robot.render(), servo_says) is refused
+        assert leg.floor_docking is refused
+        if near_m is None:
+            assert leg.near_floor_m is None  # the map loaded without images: no alignment, no refusal
+        else:
+            assert leg.near_floor_m == pytest.approx(near_m, abs=0.05)

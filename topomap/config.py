@@ -676,6 +676,14 @@ class NavigateConfig:
     arrive_floor_max_m: float = 0.15
     arrive_floor_min_fraction: float = 0.5
     arrive_floor_min_readings: int = 15
+    # ... and where the goal's keyframe image is at hand and its near floor textured, the near floor,
+    # aligned pixel by pixel (topomap.servo.floor), puts the robot within the same bound: far points
+    # cannot tell a sideways step from a turn, the near floor can. An alignment counts when its
+    # normalised cross-correlation reaches floor_align_min_ncc and beats the poses a tenth of a camera
+    # height aside by floor_align_min_peak. Refused, the servo docks on the floor's pose from then on.
+    arrive_floor_align: bool = True
+    floor_align_min_ncc: float = 0.9
+    floor_align_min_peak: float = 0.015
     # A unicycle (only) can also stall further out (heading aligned, no progress, a lateral offset it cannot
     # remove without manoeuvres that lose the view). Aligned within settle_patience_max_m and
     # changing less than settle_patience_progress_m over settle_patience_s (medians of the window's
@@ -803,6 +811,8 @@ class NavigateConfig:
             raise ConfigError(f"navigate switch_floor_max_m={self.switch_floor_max_m} must be positive or None")
         if self.arrive_floor_min_readings < 1:
             raise ConfigError("navigate arrive_floor_min_readings must be at least 1")
+        if not -1 <= self.floor_align_min_ncc <= 1 or not 0 <= self.floor_align_min_peak <= 2:
+            raise ConfigError("navigate floor_align_min_ncc must lie in [-1, 1] and floor_align_min_peak in [0, 2]")
         if not self.arrive_floor_max_m > 0 or not self.start_confirm_heading_deg > 0:
             raise ConfigError("navigate arrive_floor_max_m and start_confirm_heading_deg must be positive")
         if self.start_search_step_m < 0 or not self.start_search_speed_mps > 0:

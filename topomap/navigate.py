@@ -39,6 +39,11 @@ goal resolved the floor fewer than ``arrive_floor_min_readings`` times: its floo
 check looks at the image turned back by the servo's heading estimate: it judges the position. On long views the goal's scale from its
 neighbours can be several times too small — the servo then believes it has arrived a quarter metre
 out, where the image barely differs — so a refused arrival hands the servo the scale the floor measured.
+The matched floor cannot see everything either: when every matched point is far (a view down a
+corridor) a sideways step looks like a turn to the features, the floor's matched points included. So
+an arrival the others agreed on is checked once more on the near floor's pixels, aligned directly
+(:mod:`topomap.servo.floor`; where the goal's keyframe image is at hand and its near floor textured):
+beyond the arrival's bound it is refused, and the servo docks on the floor's pose from then on.
 The disturbance estimates carry from one subgoal to the next, and so does the heading: at a switch
 the heading relative to the new subgoal is predicted from the heading relative to the old one and
 the two keyframes' relative heading (their images' planar geometry, stored on the map's edges:
@@ -100,7 +105,7 @@ import math
 from collections import Counter, deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
-from typing import Protocol
+from typing import Callable, Protocol
 
 import cv2
 import networkx as nx
@@ -118,7 +123,9 @@ from topomap.motion import STOP, Command, VehicleKind, vehicle_kind, wrap_angle
 from topomap.plan import Planner, Route
 from topomap.relative_motion import SCALE_CLIP_FACTOR, KeyframePairs
 from topomap.retrieval import thumbnail_descriptor
+from topomap.self_supervision import keyframe_image as stored_keyframe_image
 from topomap.servo.essential import rotation_y
+from topomap.servo.floor import FloorAligner, FloorAlignment
 from topomap.servo.pose import PoseStatus, RelativePose
 from topomap.servo.relpose import relative_pose, relative_pose_with_scales
 from topomap.servo.servo import AppearanceServo, ServoOutput, ServoStatus
@@ -388,6 +395,9 @@ class _Leg:
     turning: int = 0  # blind periods spent turning toward a subgoal outside the view
     seen: bool = False  # the subgoal gave the servo usable geometry since it became the target
     bridged: bool = False  # the taught step to the subgoal was driven blind (:meth:`Navigator._bridge`)
+    floor_docking: bool = False  # the near floor refused an arrival: the servo docks on the floor's pose
+    dock_heading: float = 0.0  # the heading the last floor alignment measured [rad]
+    near_floor_m: float | None = None  # the distance the near floor measured at the last arrival checked [m]
 
     def switch_to(self, i: int, time_s: float) -> None:
         """Make ``nodes[i]`` the subgoal from ``time_s``: its own blind, turning, seen and bridged state."""
@@ -414,6 +424,7 @@ class Navigator:
         localize_config: LocalizeConfig | None = None,
         plan_config: PlanConfig | None = None,
         localizer: Localizer | None = None,
+        keyframe_image: Callable[[int], np.ndarray | None] | None = None,
     ):
         self.map = tmap
         self.robot = robot
@@ -459,6 +470,9 @@ class Navigator:
         self._contact_streak = 0  # periods in a row the bumper reported contact
         height = self.config.camera_height_m
         self._camera_height_m = height if height is not None else getattr(robot, "camera_height_m", None)
+        # a goal's keyframe image, for the near floor's alignment (default: the images held in tmap)
+        self._keyframe_image = keyframe_image or (lambda node: stored_keyframe_image(tmap, node))
+        self._floor_aligners: dict[int, FloorAligner | None] = {}
 
     # ------------------------------------------------------------------ robot I/O
     def _scan_step(self, duration_s: float | None = None) -> float:
@@ -763,6 +777,54 @@ class Navigator:
         y = self.map.camera.normalize(self.map.nodes[node].features.keypoints)[:, 1]  # as the servo's floor sees them
         return int(np.count_nonzero(y > self.servo.config.geometry.floor_min_y)) >= FLOOR_MIN_KEYFRAME_POINTS
 
+    def _floor_aligner(self, node: int) -> FloorAligner | None:
+        """The near-floor aligner of ``node``'s keyframe; None without the camera height, the keyframe's
+        image, floor in its view or texture on it (plain paint: nothing to align)."""
+        if node not in self._floor_aligners:
+            aligner = None
+            if self.config.arrive_floor_align and self._camera_height_m is not None and self.shows_floor(node):
+                image = self._keyframe_image(node)
+                if image is not None:
+                    aligner = FloorAligner(image, self.map.camera)
+            self._floor_aligners[node] = aligner if aligner is not None and aligner.textured else None
+        return self._floor_aligners[node]
+
+    def _aligned_floor(self, node: int, image: np.ndarray, heading_rad: float) -> FloorAlignment | None:
+        """The robot's pose relative to ``node`` from its near floor in ``image``, if the alignment is
+        confident (:meth:`FloorAlignment.confident`)."""
+        aligner = self._floor_aligner(node)
+        if aligner is None:
+            return None
+        cam = self.robot.camera.fitted_to(image.shape[1], image.shape[0])
+        a = aligner.align(image, cam, heading_rad if math.isfinite(heading_rad) else 0.0)
+        cfg = self.config
+        return a if a is not None and a.confident(cfg.floor_align_min_ncc, cfg.floor_align_min_peak) else None
+
+    def _near_floor_refuses(self, leg: _Leg, arrived: str, dock: FloorAlignment | None, image: np.ndarray,
+                            s: ServoOutput) -> bool:
+        """Whether the near floor refuses the arrival the servo, the image and the matched floor agreed
+        on: aligned (this period's docking alignment, or one made now), it puts the robot beyond the
+        arrival's bound. Looking down a corridor every matched point is far, and far points cannot
+        tell a sideways step from a turn: the robot stood 0.26-0.33 m beside its goal, "arrived"
+        (fresh worlds 289 ep 8, 286 ep 9). A refusal starts a fresh settle, docking on the floor's pose."""
+        near = dock if dock is not None else self._aligned_floor(leg.nodes[-1], image, s.heading_error_rad)
+        if near is None:
+            leg.near_floor_m = None
+            return False
+        leg.near_floor_m = near.distance_h * self._camera_height_m
+        bound = self.config.arrive_floor_max_m if arrived == "precise" else self.config.settle_patience_max_m
+        if leg.near_floor_m < bound:
+            return False
+        self._count("arrivals the near floor refused")
+        leg.floor_docking, leg.dock_heading = True, near.theta
+        leg.settle = self._new_settle(leg.nodes[-1])
+        return True
+
+    def _floor_pose(self, a: FloorAlignment) -> RelativePose:
+        """A floor alignment as the servo's pose measurement (its scale)."""
+        k = self._camera_height_m / self.servo.scale_m
+        return RelativePose(PoseStatus.OK, theta=a.theta, x_s=a.x_h * k, z_s=a.z_h * k, inliers=a.pixels)
+
     def _start_leg(self, nodes: list[int]) -> _Leg:
         """The one place a route's loop state starts (first plan and every re-plan)."""
         leg = _Leg(list(nodes), self._new_settle(nodes[-1]), self._time)
@@ -782,8 +844,12 @@ class Navigator:
             v = self._match(q, sub)
             use = v.inlier_matches if v.verified else v.matches
             cur_px, goal_px = q.features.keypoints[use.ia], self.map.nodes[sub].features.keypoints[use.ib]
+            # docking on the near floor (an arrival it refused): its pose steers, where it aligns
+            dock = self._aligned_floor(sub, image, leg.dock_heading) if final and leg.floor_docking else None
             s = self.servo.step(cur_px, goal_px, self.camera, cfg.control_period_s, self._last_command,
-                                goal_camera=self.map.camera)
+                                goal_camera=self.map.camera, measured=None if dock is None else self._floor_pose(dock))
+            if dock is not None:
+                leg.dock_heading = dock.theta
             yield NavEvent(EventKind.STEP, self._time, s.status.value, subgoal=sub, route=tuple(nodes), servo=s,
                            command=s.command, image=image, matches=(cur_px, goal_px))
             self._estimate = s.disturbance
@@ -797,13 +863,15 @@ class Navigator:
 
             # -- final goal: settle
             if final:
-                floor_m = self._floor_m(s)
+                floor_m = self._floor_m(s) if dock is None else dock.distance_h * self._camera_height_m
                 qa, va = self._derotated(q, v, cur_px, goal_px, s.heading_error_rad)
                 arrived = leg.settle.update(
                     self._time, s, self.agreement.agrees(qa, va, sub),
                     lambda: self.agreement.agrees(qa, va, sub, cfg.settle_patience_image_error), floor_m)
                 if arrived == "far":
                     self._rescale(leg)
+                elif arrived and self._near_floor_refuses(leg, arrived, dock, image, s):
+                    pass  # docks on the floor's pose from here
                 elif arrived and not self._contact_streak:  # never touching: keyframes were taken clear of walls
                     self._move(STOP)
                     out.status = NavStatus.ARRIVED
@@ -813,7 +881,10 @@ class Navigator:
                         f" (the floor measures {floor:.2f} m)" if math.isfinite(floor) else
                         " (its view shows no floor to measure)" if self._camera_height_m is not None and not leg.settle.floor_required
                         else f" (its floor not matched: under {cfg.arrive_floor_min_readings} readings in "
-                        f"{cfg.settle_patience_s:.0f} s)" if leg.settle.floor_unmeasurable() else "")
+                        f"{cfg.settle_patience_s:.0f} s)" if leg.settle.floor_unmeasurable() else "") + (
+                        f" (the near floor aligns {leg.near_floor_m:.2f} m off)" if leg.near_floor_m is not None else "") + (
+                        f" (docked on the near floor after {self._tried['arrivals the near floor refused']:.0f} refused arrivals)"
+                        if "arrivals the near floor refused" in self._tried else "")
                     yield NavEvent(EventKind.ARRIVED, self._time, out.message, subgoal=goal, route=tuple(nodes))
                     return
             # -- intermediate subgoal: switch?
@@ -1149,6 +1220,8 @@ class Navigator:
             parts.append(f"distrusted {t['loop closures distrusted']:.0f} loop closures")
         if "arrivals the floor refused" in t:
             parts.append(f"took the floor's scale at the goal {t['arrivals the floor refused']:.0f} times")
+        if "arrivals the near floor refused" in t:
+            parts.append(f"docked on the near floor after {t['arrivals the near floor refused']:.0f} refused arrivals")
         if "taught steps driven blind" in t:
             ended = t.get("blind steps ended by contact", 0)
             parts.append(f"drove {t['taught steps driven blind']:.0f} taught steps past subgoals that did not verify"

@@ -183,13 +183,17 @@ class AppearanceServo:
         dt: float,
         last_command: Command | None = None,
         goal_camera: CameraIntrinsics | None = None,
+        measured: RelativePose | None = None,
     ) -> ServoOutput:
         """One control step.
 
         ``matched_cur_px, matched_goal_px``: (N, 2) pixels of the same features in the current and
         the goal image (row i matches row i); ``camera``: intrinsics of the current image
         (``goal_camera`` of the goal image, default the same); ``dt``: time since the previous step
-        [s]; ``last_command``: the command applied since the previous step (None on the first).
+        [s]; ``last_command``: the command applied since the previous step (None on the first);
+        ``measured``: a pose measured otherwise for this image (the floor's alignment,
+        :mod:`topomap.servo.floor`; status OK, position at this servo's scale): used instead of the
+        features' pose, which still gives the floor reading.
         """
         if not (math.isfinite(dt) and dt > 0):
             raise ConfigError(f"control period dt={dt} must be a positive number of seconds")
@@ -199,7 +203,7 @@ class AppearanceServo:
         pose, _, rho_floor = relative_pose_with_scales(matched_cur_px, matched_goal_px, camera, cfg.geometry,
                                                        goal_camera=goal_camera)
         floor_s = rho_floor if rho_floor is not None else math.nan
-        pose = choose_plane_solution(pose, self.wall_normals)
+        pose = choose_plane_solution(pose, self.wall_normals) if measured is None else measured
         self.window.predict(last_command, self.observer.estimate, dt)  # the held poses, moved on to now
         if pose.status is PoseStatus.OK:
             x_s, z_s = pose.x_s, pose.z_s

@@ -11,6 +11,7 @@ the animation; it listens to the navigator's events and never feeds anything bac
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
@@ -141,7 +142,7 @@ def run_demo(
     from topomap.camera import load_camera
     from topomap.sim.teach import teach
     from topomap.sim.world import default_world
-    from topomap.store import save_map
+    from topomap.store import load_node_image, save_map
 
     def stage(msg: str) -> None:
         log.info(msg)
@@ -181,7 +182,8 @@ def run_demo(
             on_event(ev)
 
     result = run_episode(tmap, world, goal, poses, start_pose=start, vehicle=vehicle, disturbance=disturbance,
-                         seed=seed, on_event=listen, on_truth=viewer.log_truth if viewer is not None else None)
+                         seed=seed, on_event=listen, on_truth=viewer.log_truth if viewer is not None else None,
+                         keyframe_image=functools.partial(load_node_image, map_path))
     title = (f"node {start_node} -> {goal}: {result.status}, "
              f"{result.final_position_error_m:.3f} m / {result.final_heading_error_deg:.1f} deg")
     files = {"map": map_path, **rec.write_all(out, world, poses, result, title=title)}

@@ -104,19 +104,23 @@ def run_episode(
     on_event: Callable[[NavEvent], None] | None = None,
     on_truth: Callable[[float, np.ndarray], None] | None = None,
     conditions: str | Conditions | None = None,
+    keyframe_image: Callable[[int], np.ndarray | None] | None = None,
 ) -> EpisodeResult:
     """Put a simulated robot at ``start_pose`` (default: the keyframe pose of ``start_node``, or of
     node 0), let the navigator drive it to ``goal`` from images alone, and score the end.
 
     ``on_event`` hears the navigator's events; ``on_truth(time_s, pose)`` the simulator's true pose
     ``(x, z, theta)`` where each control step's image was taken (for recordings and scoring only);
-    ``conditions``: how the repeat run looks (:mod:`topomap.sim.conditions`; default as taught)."""
+    ``conditions``: how the repeat run looks (:mod:`topomap.sim.conditions`; default as taught);
+    ``keyframe_image``: a node's keyframe image where ``tmap`` holds none (e.g.
+    :func:`topomap.store.load_node_image` of its file), for the near floor's arrival check."""
     target = goal_pose(tmap, poses, goal)
     if start_pose is None:
         start_pose = tuple(goal_pose(tmap, poses, start_node if start_node is not None else min(tmap.nodes)))
     with Simulator(world, vehicle=vehicle, disturbance=disturbance, seed=seed, start_pose=start_pose,
                    camera=_camera_for(tmap), conditions=conditions) as sim:
-        nav = Navigator(tmap, sim.robot, vehicle, navigate_config, servo_config, localize_config, localizer=localizer)
+        nav = Navigator(tmap, sim.robot, vehicle, navigate_config, servo_config, localize_config, localizer=localizer,
+                        keyframe_image=keyframe_image)
         first_route: tuple[int, ...] = ()
         for ev in nav.run(goal, start_node=start_node):
             if ev.kind is EventKind.PLANNED and not first_route:
