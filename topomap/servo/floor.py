@@ -47,7 +47,8 @@ class FloorAlignment:
     """A floor alignment: the current camera's planar pose in the goal camera's frame.
 
     ``x_h`` forward, ``z_h`` to the left [camera heights]; ``theta`` [rad] counter-clockwise;
-    ``ncc``: normalised cross-correlation of the aligned floor pixels (1 = identical); ``peak``: by
+    ``ncc``: the alignment's score, the mean normalised cross-correlation of the better
+    ``KEEP_TILES`` of the floor's tiles (1 = identical); ``peak``: by
     how much it exceeds the best of the poses ``PEAK_STEP_H`` aside and ahead (a flat peak, as on
     a plain floor, measures nothing); ``pixels``: floor samples compared."""
 
@@ -88,9 +89,8 @@ class FloorAligner:
         h, w = g.shape
         sx, sy = w / goal_camera.width, h / goal_camera.height  # a keyframe stored at another size than its intrinsics
         fx, fy, cx, cy = goal_camera.fx * sx, goal_camera.fy * sy, goal_camera.cx * sx, goal_camera.cy * sy
-        y0 = int(math.ceil(cy + fy / NEAR_H))
+        y0 = min(int(math.ceil(cy + fy / NEAR_H)), h)
         self._samples, self._onehot, self._textured_tiles = {}, {}, {}
-        y0 = min(y0, h)
         for step in (GRID_STEP_PX, GRID_STEP_PX // 2):
             ys, xs = np.mgrid[y0:h:step, 0:w:step]
             vals = g[ys, xs].ravel().astype(np.float64)
@@ -102,17 +102,17 @@ class FloorAligner:
             onehot = np.zeros((vals.size, n_tiles))
             onehot[np.arange(vals.size), tiles] = 1.0
             spread = np.array([vals[tiles == t].std() if np.any(tiles == t) else 0.0 for t in range(n_tiles)])
-            self._samples[step] = (((xs - cx) / fx).ravel(), ((ys - cy) / fy).ravel(), vals, tiles, n_tiles)
+            self._samples[step] = (((xs - cx) / fx).ravel(), ((ys - cy) / fy).ravel(), vals)
             self._onehot[step] = onehot
             self._textured_tiles[step] = spread >= MIN_TEXTURE
         self.textured = int(self._textured_tiles[GRID_STEP_PX].sum()) >= MIN_TILES
 
     def _ncc(self, poses: np.ndarray, cur: np.ndarray, camera: CameraIntrinsics, step: int) -> tuple[np.ndarray, np.ndarray]:
         """The floor's agreement for each row ``(theta, c_X, c_Z)`` of ``poses`` (K, 3): ``(score (K,),
-        pixels compared (K,))``. The score is the mean normalised cross-correlation of the better half
-        of the keyframe's floor tiles: near a wall the bottom corners show the wall, which no floor
-        pose aligns, and a robot beside its goal sees more of it."""
-        xn, yn, vals, tiles, n_tiles = self._samples[step]
+        pixels compared (K,))``. The score is the mean normalised cross-correlation of the better
+        ``KEEP_TILES`` of the keyframe's textured floor tiles in view: near a wall the bottom corners
+        show the wall, which no floor pose aligns, and a robot beside its goal sees more of it."""
+        xn, yn, vals = self._samples[step]
         Z = 1.0 / yn
         X = xn * Z
         th, cX, cZ = poses[:, :1], poses[:, 1:2], poses[:, 2:3]
