@@ -102,7 +102,8 @@ class FloorAligner:
             onehot = np.zeros((vals.size, n_tiles))
             onehot[np.arange(vals.size), tiles] = 1.0
             spread = np.array([vals[tiles == t].std() if np.any(tiles == t) else 0.0 for t in range(n_tiles)])
-            self._samples[step] = (((xs - cx) / fx).ravel(), ((ys - cy) / fy).ravel(), vals)
+            Z = 1.0 / ((ys - cy) / fy).ravel()  # each sample on the floor, in camera heights from the keyframe
+            self._samples[step] = (((xs - cx) / fx).ravel() * Z, Z, vals)
             self._onehot[step] = onehot
             self._textured_tiles[step] = spread >= MIN_TEXTURE
         self.textured = int(self._textured_tiles[GRID_STEP_PX].sum()) >= MIN_TILES
@@ -112,9 +113,7 @@ class FloorAligner:
         pixels compared (K,))``. The score is the mean normalised cross-correlation of the better
         ``KEEP_TILES`` of the keyframe's textured floor tiles in view: near a wall the bottom corners
         show the wall, which no floor pose aligns, and a robot beside its goal sees more of it."""
-        xn, yn, vals = self._samples[step]
-        Z = 1.0 / yn
-        X = xn * Z
+        X, Z, vals = self._samples[step]
         th, cX, cZ = poses[:, :1], poses[:, 1:2], poses[:, 2:3]
         dx, dz = X[None] - cX, Z[None] - cZ
         c, s = np.cos(th), np.sin(th)
@@ -150,7 +149,8 @@ class FloorAligner:
               reach_h: float = 0.75, turn_rad: float = math.radians(4.0)) -> FloorAlignment | None:
         """The pose that aligns the keyframe's near floor with ``image`` (taken with ``camera``):
         a grid within ``reach_h`` camera heights of the goal and ``turn_rad`` of ``theta0`` (the
-        servo's heading), then a Nelder-Mead refinement. None on a plain floor or too little overlap."""
+        servo's heading), then a Nelder-Mead refinement. None on a plain floor, with too little
+        overlap, or where the best pose turned beyond ``turn_rad`` (not this floor)."""
         if not self.textured:
             return None
         cur = _grey(image)
