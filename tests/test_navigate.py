@@ -762,6 +762,17 @@ def test_recover_scale_tolerance_is_a_factor():
         NavigateConfig(recover_scale_tolerance=0.9)
 
 
+@pytest.mark.parametrize("bad", [dict(floor_dock_target_m=0.0), dict(floor_dock_target_m=-0.03),
+                                 dict(floor_dock_patience_s=-1.0), dict(floor_dock_patience_s=float("nan"))])
+def test_floor_docking_options_are_checked(bad):
+    from topomap.config import NavigateConfig
+    from topomap.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="floor_dock"):
+        NavigateConfig(**bad)
+    assert NavigateConfig(floor_dock_target_m=None).floor_dock_target_m is None
+
+
 # ---------------------------------------------------------------------- drift while searching, the bumper
 def test_the_search_turn_cancels_the_estimated_drift_not_only_the_yaw():
     """Turning in place under a forward/sideways drift the servo has estimated, the search turn sends
@@ -1205,3 +1216,33 @@ def test_the_near_floor_refuses_an_arrival_beside_the_goal(taught):
             assert leg.near_floor_m is None  # the map loaded without images: no alignment, no refusal
         else:
             assert leg.near_floor_m == pytest.approx(near_m, abs=0.05)
+
+
+def test_an_omni_docks_closer_on_the_near_floor_within_the_bound(taught):
+    """0.1 m beside the goal is inside the arrival's bound (0.15 m), but the near floor measures it
+    to about a centimetre: an omni holds the arrival back and docks on the floor's pose, for at most
+    ``floor_dock_patience_s``, after which the same arrival stands; a unicycle (whose sideways
+    docking turns the near floor out of view) and a robot at the goal arrive at once."""
+    import functools
+    from types import SimpleNamespace
+
+    from topomap.config import NavigateConfig
+    from topomap.store import load_node_image
+
+    m, world, poses, path = taught
+    goal = sorted(m.nodes)[52]
+    x, z, th = goal_pose(m, poses, goal)
+    beside = (x - 0.1 * math.sin(th), z + 0.1 * math.cos(th), th)
+    servo_says = SimpleNamespace(heading_error_rad=0.0)
+    for pose, vehicle, held in ((beside, "omni", True), (beside, "unicycle", False), ((x, z, th), "omni", False)):
+        with Simulator(world, vehicle=vehicle, start_pose=pose) as sim:
+            nav = Navigator(m, sim.robot, vehicle, config=NavigateConfig(camera_height_m=sim.camera_height_m),
+                            keyframe_image=functools.partial(load_node_image, path))
+            leg = nav._start_leg([goal])
+            image = sim.robot.render()
+            assert nav._near_floor_refuses(leg, "precise", None, image, servo_says) is held, (vehicle, pose)
+            if held:
+                assert leg.floor_docking and leg.dock_last is not None
+                assert leg.near_floor_m == pytest.approx(0.1, abs=0.03)
+                nav._time = leg.dock_since_s + nav.config.floor_dock_patience_s  # patience spent
+                assert nav._near_floor_refuses(leg, "precise", None, image, servo_says) is False

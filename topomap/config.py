@@ -684,6 +684,12 @@ class NavigateConfig:
     arrive_floor_align: bool = True
     floor_align_min_ncc: float = 0.9
     floor_align_min_peak: float = 0.015
+    # Within the bound, an arrival the near floor puts floor_dock_target_m or more away (the servo's own
+    # convergence tolerance, position_tol_m, now measured by the better witness) is held back too: the
+    # servo docks on the floor's pose, for at most floor_dock_patience_s, and the next arrival within
+    # the bound after that stands. A compensated servo converges on that pose; None: no docking within the bound.
+    floor_dock_target_m: float | None = 0.03
+    floor_dock_patience_s: float = 15.0
     # A unicycle (only) can also stall further out (heading aligned, no progress, a lateral offset it cannot
     # remove without manoeuvres that lose the view). Aligned within settle_patience_max_m and
     # changing less than settle_patience_progress_m over settle_patience_s (medians of the window's
@@ -813,6 +819,8 @@ class NavigateConfig:
             raise ConfigError("navigate arrive_floor_min_readings must be at least 1")
         if not -1 <= self.floor_align_min_ncc <= 1 or not 0 <= self.floor_align_min_peak <= 2:
             raise ConfigError("navigate floor_align_min_ncc must lie in [-1, 1] and floor_align_min_peak in [0, 2]")
+        if (self.floor_dock_target_m is not None and not self.floor_dock_target_m > 0) or not self.floor_dock_patience_s >= 0:
+            raise ConfigError("navigate floor_dock_target_m must be positive (or None) and floor_dock_patience_s >= 0")
         if not self.arrive_floor_max_m > 0 or not self.start_confirm_heading_deg > 0:
             raise ConfigError("navigate arrive_floor_max_m and start_confirm_heading_deg must be positive")
         if self.start_search_step_m < 0 or not self.start_search_speed_mps > 0:

@@ -397,6 +397,8 @@ class _Leg:
     bridged: bool = False  # the taught step to the subgoal was driven blind (:meth:`Navigator._bridge`)
     floor_docking: bool = False  # the near floor refused an arrival: the servo docks on the floor's pose
     dock_heading: float = 0.0  # the heading the last floor alignment measured [rad]
+    dock_since_s: float | None = None  # when the near floor first held an arrival back
+    dock_last: FloorAlignment | None = None  # the last docking alignment (tracked from, the next period)
     near_floor_m: float | None = None  # the distance the near floor measured at the last arrival checked [m]
 
     def switch_to(self, i: int, time_s: float) -> None:
@@ -789,16 +791,22 @@ class Navigator:
             self._floor_aligners[node] = aligner if aligner is not None and aligner.textured else None
         return self._floor_aligners[node]
 
-    def _aligned_floor(self, node: int, image: np.ndarray, heading_rad: float) -> FloorAlignment | None:
+    def _aligned_floor(self, node: int, image: np.ndarray, heading_rad: float,
+                       near: FloorAlignment | None = None) -> FloorAlignment | None:
         """The robot's pose relative to ``node`` from its near floor in ``image``, if the alignment is
-        confident (:meth:`FloorAlignment.confident`)."""
+        confident (:meth:`FloorAlignment.confident`). ``near``: last period's alignment, tracked from
+        (a small search around it; the full search where that is not confident)."""
         aligner = self._floor_aligner(node)
         if aligner is None:
             return None
-        cam = self.robot.camera.fitted_to(image.shape[1], image.shape[0])
-        a = aligner.align(image, cam, heading_rad if math.isfinite(heading_rad) else 0.0)
         cfg = self.config
-        return a if a is not None and a.confident(cfg.floor_align_min_ncc, cfg.floor_align_min_peak) else None
+        cam = self.robot.camera.fitted_to(image.shape[1], image.shape[0])
+        theta0 = heading_rad if math.isfinite(heading_rad) else 0.0
+        for around in ((near, None) if near is not None else (None,)):
+            a = aligner.align(image, cam, theta0, near=around)
+            if a is not None and a.confident(cfg.floor_align_min_ncc, cfg.floor_align_min_peak):
+                return a
+        return None
 
     def _near_floor_refuses(self, leg: _Leg, arrived: str, dock: FloorAlignment | None, image: np.ndarray,
                             s: ServoOutput) -> bool:
@@ -807,18 +815,34 @@ class Navigator:
         arrival's bound. Looking down a corridor every matched point is far, and far points cannot
         tell a sideways step from a turn: the robot stood 0.26-0.33 m beside its goal, "arrived"
         (fresh worlds 289 ep 8, 286 ep 9). A refusal starts a fresh settle, docking on the floor's pose."""
+        cfg = self.config
         near = dock if dock is not None else self._aligned_floor(leg.nodes[-1], image, s.heading_error_rad)
         if near is None:
             leg.near_floor_m = None
             return False
         leg.near_floor_m = near.distance_h * self._camera_height_m
-        bound = self.config.arrive_floor_max_m if arrived == "precise" else self.config.settle_patience_max_m
+        bound = cfg.arrive_floor_max_m if arrived == "precise" else cfg.settle_patience_max_m
         if leg.near_floor_m < bound:
-            return False
-        self._count("arrivals the near floor refused")
-        leg.floor_docking, leg.dock_heading = True, near.theta
+            # within the bound: an omni docks closer on the floor's pose while floor_dock_patience_s lasts
+            # (a unicycle's sideways docking turns it until the keyframe's near floor leaves the view)
+            target = cfg.floor_dock_target_m if self.vehicle is VehicleKind.OMNI else None
+            if target is None or leg.near_floor_m < target or (
+                    leg.dock_since_s is not None and self._time - leg.dock_since_s >= cfg.floor_dock_patience_s):
+                return False
+            self._count("arrivals held to dock closer")
+        else:
+            self._count("arrivals the near floor refused")
+        if leg.dock_since_s is None:
+            leg.dock_since_s = self._time
+        leg.floor_docking, leg.dock_heading, leg.dock_last = True, near.theta, near
         leg.settle = self._new_settle(leg.nodes[-1])
         return True
+
+    def _predicted(self, a: FloorAlignment | None) -> FloorAlignment | None:
+        """Last period's alignment turned by the command since (a docking unicycle turns ~3 deg a period)."""
+        if a is None or self._last_command is None:
+            return a
+        return replace(a, theta=a.theta + self._last_command.omega * self.config.control_period_s)
 
     def _floor_pose(self, a: FloorAlignment) -> RelativePose:
         """A floor alignment as the servo's pose measurement (its scale)."""
@@ -845,9 +869,10 @@ class Navigator:
             use = v.inlier_matches if v.verified else v.matches
             cur_px, goal_px = q.features.keypoints[use.ia], self.map.nodes[sub].features.keypoints[use.ib]
             # docking on the near floor (an arrival it refused): its pose steers, where it aligns
-            dock = self._aligned_floor(sub, image, leg.dock_heading) if final and leg.floor_docking else None
+            dock = self._aligned_floor(sub, image, leg.dock_heading, self._predicted(leg.dock_last)) if final and leg.floor_docking else None
             s = self.servo.step(cur_px, goal_px, self.camera, cfg.control_period_s, self._last_command,
                                 goal_camera=self.map.camera, measured=None if dock is None else self._floor_pose(dock))
+            leg.dock_last = dock
             if dock is not None:
                 leg.dock_heading = dock.theta
             yield NavEvent(EventKind.STEP, self._time, s.status.value, subgoal=sub, route=tuple(nodes), servo=s,
@@ -883,8 +908,8 @@ class Navigator:
                         else f" (its floor not matched: under {cfg.arrive_floor_min_readings} readings in "
                         f"{cfg.settle_patience_s:.0f} s)" if leg.settle.floor_unmeasurable() else "") + (
                         f" (the near floor aligns {leg.near_floor_m:.2f} m off)" if leg.near_floor_m is not None else "") + (
-                        f" (docked on the near floor after {self._tried['arrivals the near floor refused']:.0f} refused arrivals)"
-                        if "arrivals the near floor refused" in self._tried else "")
+                        f" (docked on the near floor for {self._time - leg.dock_since_s:.0f} s)"
+                        if leg.dock_since_s is not None else "")
                     yield NavEvent(EventKind.ARRIVED, self._time, out.message, subgoal=goal, route=tuple(nodes))
                     return
             # -- intermediate subgoal: switch?

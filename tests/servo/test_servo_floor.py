@@ -50,6 +50,25 @@ def test_alignment_measures_the_pose_beside_and_behind_the_goal(scene, forward, 
     assert a.distance_h * HEIGHT == pytest.approx(math.hypot(forward, left), abs=0.05)
 
 
+def test_tracking_from_last_periods_pose_finds_the_same_pose(scene):
+    """Docking aligns every period: tracked from the previous alignment (a docking robot moved a few
+    cm since), the small search ends where the full one does; started at a pose the floor does not
+    support (0.5 m off), it finds no confident pose near it rather than a wrong one."""
+    from dataclasses import replace
+
+    renderer, camera = scene
+    aligner = FloorAligner(renderer.render(Pose(*GOAL)), camera)
+    image = renderer.render(_at(-0.1, 0.12, 1.0))
+    full = aligner.align(image, camera, 0.0)
+    assert full is not None and full.confident(0.9, 0.015)
+    tracked = aligner.align(image, camera, 0.0, near=replace(full, x_h=full.x_h + 0.05, z_h=full.z_h - 0.05))
+    assert tracked is not None and tracked.confident(0.9, 0.015)
+    assert (tracked.x_h - full.x_h) * HEIGHT == pytest.approx(0.0, abs=0.01)
+    assert (tracked.z_h - full.z_h) * HEIGHT == pytest.approx(0.0, abs=0.01)
+    astray = aligner.align(image, camera, 0.0, near=replace(full, z_h=full.z_h + 0.5 / HEIGHT))
+    assert astray is None or not astray.confident(0.9, 0.015) or abs(astray.z_h - full.z_h) * HEIGHT < 0.02
+
+
 def test_a_plain_floor_is_not_aligned(scene):
     """Plain paint (here: a uniform image) has nothing to align: no alignment rather than a guess."""
     _, camera = scene
