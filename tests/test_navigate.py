@@ -1246,3 +1246,23 @@ def test_an_omni_docks_closer_on_the_near_floor_within_the_bound(taught):
                 assert leg.near_floor_m == pytest.approx(0.1, abs=0.03)
                 nav._time = leg.dock_since_s + nav.config.floor_dock_patience_s  # patience spent
                 assert nav._near_floor_refuses(leg, "precise", None, image, servo_says) is False
+
+
+def test_an_omni_approaches_its_goal_on_the_near_floor(taught):
+    """Started 0.25 m beside and 0.2 m behind a goal, an omni vehicle steers its final approach by the
+    near floor once it aligns (not only after a refused arrival) and arrives within a few centimetres,
+    under harsh disturbances; its arrival says so."""
+    import functools
+
+    from topomap.sim.episode import run_episode
+    from topomap.store import load_node_image
+
+    m, world, poses, path = taught
+    goal = sorted(m.nodes)[52]
+    x, z, th = goal_pose(m, poses, goal)
+    start = (x - 0.2 * math.cos(th) - 0.25 * math.sin(th), z - 0.2 * math.sin(th) + 0.25 * math.cos(th), th)
+    r = run_episode(m, world, goal, poses, start_pose=start, vehicle="omni", disturbance="harsh", seed=3,
+                    keyframe_image=functools.partial(load_node_image, path))
+    assert r.success, r.message
+    assert "near floor" in r.message and ("approached on the near floor" in r.message or "docked" in r.message)
+    assert r.final_position_error_m < 0.05

@@ -146,6 +146,9 @@ BACKOFF_CHECK_EVERY = 3
 #: The floor can certify an arrival only where the goal's keyframe shows it: at least this many of its
 #: features below the floor line (a wall closer than the first floor the camera sees hides it).
 FLOOR_MIN_KEYFRAME_POINTS = 10
+#: The final approach tries the near floor (:meth:`Navigator._floor_in_reach`) every this many periods
+#: until it aligns: a full search costs 0.25-0.9 s.
+FLOOR_TRY_PERIODS = 5
 #: An intermediate subgoal's floor check (``switch_floor_max_m``) takes the median of the readings of
 #: the last this many periods, when at least ``SWITCH_FLOOR_MIN_READINGS`` of them measured the floor.
 SWITCH_FLOOR_PERIODS = 10
@@ -399,6 +402,9 @@ class _Leg:
     dock_heading: float = 0.0  # the heading the last floor alignment measured [rad]
     dock_since_s: float | None = None  # when the near floor first held an arrival back
     dock_last: FloorAlignment | None = None  # the last docking alignment (tracked from, the next period)
+    periods_at_goal: int = 0  # periods with the final goal as the target
+    last_heading: float = math.nan  # the servo's heading error to the final goal, last period [rad]
+    last_reading_m: float = math.inf  # the nearer of last period's servo and matched-floor distances [m]
     near_floor_m: float | None = None  # the distance the near floor measured at the last arrival checked [m]
 
     def switch_to(self, i: int, time_s: float) -> None:
@@ -838,6 +844,15 @@ class Navigator:
         leg.settle = self._new_settle(leg.nodes[-1])
         return True
 
+    def _floor_in_reach(self, leg: _Leg) -> bool:
+        """Whether to try the near floor on the final approach this period (an omni vehicle only; every
+        ``FLOOR_TRY_PERIODS``): last period's servo or matched floor put the goal within
+        ``floor_approach_m``. Near a goal the features' pose can jump 0.03-1.4 m between frames
+        (world 254 ep 1 under ``lighting``) where the near floor measures it to a centimetre."""
+        cfg = self.config
+        return (cfg.floor_approach_m is not None and self.vehicle is VehicleKind.OMNI and self._camera_height_m is not None
+                and leg.periods_at_goal % FLOOR_TRY_PERIODS == 0 and leg.last_reading_m < cfg.floor_approach_m)
+
     def _predicted(self, a: FloorAlignment | None) -> FloorAlignment | None:
         """Last period's alignment turned by the command since (a docking unicycle turns ~3 deg a period)."""
         if a is None or self._last_command is None:
@@ -870,11 +885,26 @@ class Navigator:
             cur_px, goal_px = q.features.keypoints[use.ia], self.map.nodes[sub].features.keypoints[use.ib]
             # docking on the near floor (an arrival it refused): its pose steers, where it aligns
             dock = self._aligned_floor(sub, image, leg.dock_heading, self._predicted(leg.dock_last)) if final and leg.floor_docking else None
+            if final and not leg.floor_docking and self._floor_in_reach(leg):
+                dock = self._aligned_floor(sub, image, leg.last_heading)
+                if dock is not None and dock.distance_h * self._camera_height_m < self.config.floor_approach_m:
+                    leg.floor_docking = True  # the near floor steers the final approach from here
+                    self._count("final approaches on the near floor")
+                else:
+                    dock = None
+            # approaching on the near floor, the features steer where they lie within floor_approach_gate_m of
+            # it (finer on a good view; the floor's own error reaches ~0.05 m); after a refusal or a hold the floor steers
             s = self.servo.step(cur_px, goal_px, self.camera, cfg.control_period_s, self._last_command,
-                                goal_camera=self.map.camera, measured=None if dock is None else self._floor_pose(dock))
+                                goal_camera=self.map.camera, measured=None if dock is None else self._floor_pose(dock),
+                                features_within_s=None if leg.dock_since_s is not None
+                                else cfg.floor_approach_gate_m / self.servo.scale_m)
             leg.dock_last = dock
             if dock is not None:
                 leg.dock_heading = dock.theta
+            if final:
+                leg.periods_at_goal += 1
+                leg.last_heading = s.heading_error_rad
+                leg.last_reading_m = min(s.position_error_m, self._floor_m(s)) if math.isfinite(self._floor_m(s)) else s.position_error_m
             yield NavEvent(EventKind.STEP, self._time, s.status.value, subgoal=sub, route=tuple(nodes), servo=s,
                            command=s.command, image=image, matches=(cur_px, goal_px))
             self._estimate = s.disturbance
@@ -888,7 +918,8 @@ class Navigator:
 
             # -- final goal: settle
             if final:
-                floor_m = self._floor_m(s) if dock is None else dock.distance_h * self._camera_height_m
+                # the matched floor stays a witness of its own until the near floor has held an arrival back
+                floor_m = self._floor_m(s) if dock is None or leg.dock_since_s is None else dock.distance_h * self._camera_height_m
                 qa, va = self._derotated(q, v, cur_px, goal_px, s.heading_error_rad)
                 arrived = leg.settle.update(
                     self._time, s, self.agreement.agrees(qa, va, sub),
@@ -909,7 +940,7 @@ class Navigator:
                         f"{cfg.settle_patience_s:.0f} s)" if leg.settle.floor_unmeasurable() else "") + (
                         f" (the near floor aligns {leg.near_floor_m:.2f} m off)" if leg.near_floor_m is not None else "") + (
                         f" (docked on the near floor for {self._time - leg.dock_since_s:.0f} s)"
-                        if leg.dock_since_s is not None else "")
+                        if leg.dock_since_s is not None else " (approached on the near floor)" if leg.floor_docking else "")
                     yield NavEvent(EventKind.ARRIVED, self._time, out.message, subgoal=goal, route=tuple(nodes))
                     return
             # -- intermediate subgoal: switch?

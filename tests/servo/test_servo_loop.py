@@ -215,3 +215,22 @@ def test_one_image_from_elsewhere_is_reported_but_does_not_steer():
     before = runs[5][-2].command
     assert math.hypot(med.command.v_f - before.v_f, med.command.v_h - before.v_h) < 0.02
     assert math.hypot(raw.command.v_f - before.v_f, raw.command.v_h - before.v_h) > 0.05
+
+
+def test_a_measured_pose_steers_unless_the_features_agree_with_it():
+    """``measured`` (the near floor's pose) replaces the features' pose; with ``features_within_s``
+    the features' own pose is kept where it lies that close to it (the finer witness on a good
+    view) and the measured one is used where they disagree by more."""
+    from topomap.servo.pose import RelativePose
+
+    rng = np.random.default_rng(5)
+    rel = (-0.6, 0.2, 0.05)
+    cp, gp, _ = matches(POINTS, in_world(rel), GOAL, rng, noise_px=0.2)
+    features = AppearanceServo("omni").step(cp, gp, CAMERA, 0.1)
+    x, z = features.pose.x_s, features.pose.z_s
+    for offset, gate, used in ((0.05, None, "measured"), (0.05, 0.2, "features"), (0.5, 0.2, "measured")):
+        measured = RelativePose(PoseStatus.OK, theta=features.pose.theta, x_s=x + offset, z_s=z, inliers=500)
+        out = AppearanceServo("omni").step(cp, gp, CAMERA, 0.1, measured=measured, features_within_s=gate)
+        expect = measured if used == "measured" else features.pose
+        assert out.pose.x_s == pytest.approx(expect.x_s, abs=1e-9), (offset, gate)
+        assert out.position_error_s == pytest.approx(math.hypot(expect.x_s, expect.z_s), abs=1e-9)

@@ -184,6 +184,7 @@ class AppearanceServo:
         last_command: Command | None = None,
         goal_camera: CameraIntrinsics | None = None,
         measured: RelativePose | None = None,
+        features_within_s: float | None = None,
     ) -> ServoOutput:
         """One control step.
 
@@ -193,7 +194,9 @@ class AppearanceServo:
         [s]; ``last_command``: the command applied since the previous step (None on the first);
         ``measured``: a pose measured otherwise for this image (the floor's alignment,
         :mod:`topomap.servo.floor`; status OK, position at this servo's scale): used instead of the
-        features' pose, which still gives the floor reading.
+        features' pose, which still gives the floor reading — unless ``features_within_s`` is given
+        and the features' pose lies within that distance of it (scaled units): where the two agree,
+        the features are the finer witness.
         """
         if not (math.isfinite(dt) and dt > 0):
             raise ConfigError(f"control period dt={dt} must be a positive number of seconds")
@@ -203,7 +206,10 @@ class AppearanceServo:
         pose, _, rho_floor = relative_pose_with_scales(matched_cur_px, matched_goal_px, camera, cfg.geometry,
                                                        goal_camera=goal_camera)
         floor_s = rho_floor if rho_floor is not None else math.nan
-        pose = choose_plane_solution(pose, self.wall_normals) if measured is None else measured
+        pose = choose_plane_solution(pose, self.wall_normals)
+        if measured is not None and not (features_within_s is not None and pose.status is PoseStatus.OK
+                                         and math.hypot(pose.x_s - measured.x_s, pose.z_s - measured.z_s) < features_within_s):
+            pose = measured
         self.window.predict(last_command, self.observer.estimate, dt)  # the held poses, moved on to now
         if pose.status is PoseStatus.OK:
             x_s, z_s = pose.x_s, pose.z_s
