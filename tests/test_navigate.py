@@ -763,12 +763,13 @@ def test_recover_scale_tolerance_is_a_factor():
 
 
 @pytest.mark.parametrize("bad", [dict(floor_dock_target_m=0.0), dict(floor_dock_target_m=-0.03),
-                                 dict(floor_dock_patience_s=-1.0), dict(floor_dock_patience_s=float("nan"))])
+                                 dict(floor_dock_patience_s=-1.0), dict(floor_dock_patience_s=float("nan")),
+                                 dict(floor_approach_m=0.0), dict(floor_approach_gate_m=-0.1)])
 def test_floor_docking_options_are_checked(bad):
     from topomap.config import NavigateConfig
     from topomap.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="floor_dock"):
+    with pytest.raises(ConfigError, match="floor_(dock|approach)"):
         NavigateConfig(**bad)
     assert NavigateConfig(floor_dock_target_m=None).floor_dock_target_m is None
 

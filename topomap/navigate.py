@@ -901,10 +901,11 @@ class Navigator:
             leg.dock_last = dock
             if dock is not None:
                 leg.dock_heading = dock.theta
+            matched_floor_m = self._floor_m(s)
             if final:
                 leg.periods_at_goal += 1
                 leg.last_heading = s.heading_error_rad
-                leg.last_reading_m = min(s.position_error_m, self._floor_m(s)) if math.isfinite(self._floor_m(s)) else s.position_error_m
+                leg.last_reading_m = min(s.position_error_m, matched_floor_m) if math.isfinite(matched_floor_m) else s.position_error_m
             yield NavEvent(EventKind.STEP, self._time, s.status.value, subgoal=sub, route=tuple(nodes), servo=s,
                            command=s.command, image=image, matches=(cur_px, goal_px))
             self._estimate = s.disturbance
@@ -919,7 +920,7 @@ class Navigator:
             # -- final goal: settle
             if final:
                 # the matched floor stays a witness of its own until the near floor has held an arrival back
-                floor_m = self._floor_m(s) if dock is None or leg.dock_since_s is None else dock.distance_h * self._camera_height_m
+                floor_m = matched_floor_m if dock is None or leg.dock_since_s is None else dock.distance_h * self._camera_height_m
                 qa, va = self._derotated(q, v, cur_px, goal_px, s.heading_error_rad)
                 arrived = leg.settle.update(
                     self._time, s, self.agreement.agrees(qa, va, sub),

@@ -154,7 +154,7 @@ class FloorAligner:
         a grid within ``reach_h`` camera heights of the goal and ``turn_rad`` of ``theta0`` (the
         servo's heading), then a Nelder-Mead refinement. ``near``: a recent alignment (tracking a
         docking robot) — the grid then spans only ``TRACK_REACH_H`` and ``TRACK_TURN_RAD`` around it,
-        at about a tenth of the cost. None on a plain floor, with too little overlap, or where the
+        at about a fifth of the cost (the refinement is the same). None on a plain floor, with too little overlap, or where the
         best pose turned beyond ``turn_rad`` of ``theta0`` (not this floor)."""
         if not self.textured:
             return None
