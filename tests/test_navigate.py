@@ -988,6 +988,55 @@ def _chain_navigator(height=0.8, **config):
     return nav
 
 
+class _NearAfterMoving(_StubLocalizer):
+    """A localizer for which nothing verifies until the robot was commanded ``after_m`` (a spot
+    pressed against a wall, held-out world 307 ep 5), then node 1 near the last good node 0."""
+
+    def __init__(self, after_m):
+        super().__init__()
+        self.nav, self.after_m = None, after_m
+
+    def localize_query(self, q, exclude=()):
+        from types import SimpleNamespace
+
+        from topomap.localize import Localization, LocalizationStatus
+
+        if exclude and self.nav._commanded_m >= self.after_m:
+            return Localization(1, 0.3, LocalizationStatus.UNKNOWN, 40, (), verification=SimpleNamespace(inliers=40))
+        return Localization(0, 0.05, LocalizationStatus.UNKNOWN, 0, ())
+
+
+def test_a_recovery_turn_that_verifies_nothing_moves_and_turns_again():
+    """Held-out world 307 ep 5: lost 1 m beside its goal against a wall, a full turn verified
+    nothing, the last good node was kept, lost again within 2 s — nine times, then it gave up.
+    Now such a turn is followed by a step towards its best view and another turn; disabled, the
+    last good node is kept as before."""
+    nav = _chain_navigator(recover_scale_tolerance=None)
+    nav.localizer = _NearAfterMoving(0.3)
+    nav.localizer.nav = nav
+    msg = [e.message for e in nav._relocalize()][-1]
+    assert nav._here == 1 and "verified near node 0" in msg, msg
+    assert nav._tried["recovery search moves"] == 1 and nav._tried["searched"] >= 360
+    assert "moved 1 times to search elsewhere" in nav._tried_summary()
+    assert nav._confirmed[0] == 1  # a verified node confirms the track
+    nav = _chain_navigator(recover_scale_tolerance=None, recover_search_moves=0)
+    nav.localizer = _NearAfterMoving(0.3)
+    nav.localizer.nav = nav
+    msg = [e.message for e in nav._relocalize()][-1]
+    assert nav._here == 0 and "kept the last good node" in msg and "recovery search moves" not in nav._tried, msg
+    # never found: one move, then the last good node
+    nav = _chain_navigator(recover_scale_tolerance=None)
+    nav.localizer = _NearAfterMoving(1e9)
+    nav.localizer.nav = nav
+    msg = [e.message for e in nav._relocalize()][-1]
+    assert nav._here == 0 and "kept the last good node" in msg and nav._tried["recovery search moves"] == 1, msg
+    from topomap.config import NavigateConfig
+    from topomap.errors import ConfigError
+
+    with pytest.raises(ConfigError):
+        NavigateConfig(recover_search_moves=-1)
+
+
 def test_a_far_answer_out_of_reach_of_the_robot_s_motion_is_refused():
     """Held-out world 200 ep 1: lost near node 72, the whole map answered the goal at 1.00 twice
     (17.7 m away, a stretch of look-alike photographs), and the goal "arrived". A far answer is now
@@ -998,6 +1047,7 @@ def test_a_far_answer_out_of_reach_of_the_robot_s_motion_is_refused():
     assert "kept the last good node" in msg and nav._here == 0, msg
     assert nav._tried["far answers out of reach"] >= 2
     assert f"refused {nav._tried['far answers out of reach']:.0f} far answers out of reach" in nav._tried_summary()
+    nav = _chain_navigator()  # (the search move of that recovery drove 0.6 m: the reach grew)
     assert nav._within_reach(3) and not nav._within_reach(4)  # 3 m of slack along the chain
     # 1.5 m driven since: a reach of 6 m; node 15 is 5 m along the chain and 0.4 m through the loop
     # edge, which costs the slack more (8.4 m): refused

@@ -770,6 +770,12 @@ class NavigateConfig:
     # disturbance its compensation missed; None: no reach (nor without a camera height).
     recover_reach_slack_m: float | None = 3.0
     recover_reach_factor: float = 2.0
+    # A recovery turn in which nothing verified (neither a near node at switch_min_inliers nor a far
+    # answer confirmed): move a step (start_search_step_m) towards the turn's best-verified view, else
+    # its most textured one, and turn again, up to this many times before taking a weak answer or the
+    # last good node (0: never). A spot from which no view verifies is a bad vantage point (pressed
+    # against a wall, past the goal's view); keeping the last good node there loses it again at once.
+    recover_search_moves: int = 1
     # The start: an answer below LocalizeConfig.min_confidence is taken when it has at least
     # start_verified_confidence and the servo's geometry confirms it twice: its relative pose has at
     # least switch_min_inliers inliers in the frame, verifies again (the match's min_inliers) after a
@@ -837,8 +843,8 @@ class NavigateConfig:
             raise ConfigError("navigate arrive_floor_max_m and start_confirm_heading_deg must be positive")
         if self.start_search_step_m < 0 or not self.start_search_speed_mps > 0:
             raise ConfigError("navigate start_search_step_m must be >= 0 and start_search_speed_mps positive")
-        if self.recover_backoff_s < 0 or self.recover_local_hops < 0:
-            raise ConfigError("navigate recover_backoff_s and recover_local_hops must be >= 0")
+        if self.recover_backoff_s < 0 or self.recover_local_hops < 0 or self.recover_search_moves < 0:
+            raise ConfigError("navigate recover_backoff_s, recover_local_hops and recover_search_moves must be >= 0")
         if (self.recover_reach_slack_m is not None and not self.recover_reach_slack_m >= 0) or not self.recover_reach_factor > 0:
             raise ConfigError("navigate recover_reach_slack_m must be >= 0 (or None) and recover_reach_factor positive")
         if self.recover_scale_tolerance is not None and not self.recover_scale_tolerance >= 1.0:

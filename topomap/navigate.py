@@ -87,9 +87,12 @@ test or the bumper reports the way blocked, the navigator stops and
    taken only at ``recover_far_confidence`` (when calibrated), confirmed by a second look (a
    single frame of a look-alike place is not enough) and within reach of the distance the robot was
    commanded to drive since its track was last confirmed (a stretch of look-alikes answers twice;
-   the robot's own motion bounds where it can be); after a full turn without either, it keeps the
-   last node that verified well (after a look-alike fooled the goal's settle test there is none: it
-   re-localizes globally);
+   the robot's own motion bounds where it can be); after a full turn without either it moves a step
+   towards the turn's best-verified view (else its most textured one) and turns again
+   (``recover_search_moves``: a spot from which nothing verifies — pressed against a wall, past the
+   goal's view — loses any node kept there again at once), and only then keeps the best weakly
+   verified near node, else the last node that verified well (after a look-alike fooled the goal's
+   settle test there is none: it re-localizes globally);
 3. penalises the edge it was following and re-plans.
 
 It does not give up while more than ``give_up_budget_fraction`` of the time budget is left and the
@@ -635,11 +638,12 @@ class Navigator:
         self._hold()
         return found, fallback, best, towards - turned
 
-    def _search_move(self, turn_rad: float) -> None:
-        """Turn by ``turn_rad`` (wrapped; towards the start turn's best-verified view, a place
+    def _search_move(self, turn_rad: float, what: str = "start search moves") -> None:
+        """Turn by ``turn_rad`` (wrapped; towards a search turn's best-verified view, a place
         the map nearly recognised, or its most textured one, open space rather than a wall close by)
         and drive forward up to ``start_search_step_m`` at ``start_search_speed_mps``, the estimated
-        disturbance compensated, stopping at the first contact."""
+        disturbance compensated, stopping at the first contact. ``what`` names the move in the
+        failure's summary."""
         cfg = self.config
         turn = wrap_angle(turn_rad) % (2.0 * math.pi)  # the scan turns one way only
         turned = 0.0
@@ -649,10 +653,10 @@ class Navigator:
         ahead = Command(hold.v_f + cfg.start_search_speed_mps, hold.v_h, hold.omega).for_vehicle(self.vehicle)
         for _ in range(self._periods(cfg.start_search_step_m / cfg.start_search_speed_mps)):
             if self._move(ahead):
-                self._count("start search moves ended by contact")
+                self._count(f"{what} ended by contact")
                 break
         self._hold()
-        self._count("start search moves")
+        self._count(what)
 
     def _face_again(self, node: int) -> bool:
         """Turn on, at most one more full turn, until ``node``'s keyframe verifies again (the match's
@@ -1153,8 +1157,10 @@ class Navigator:
     def _relocalize(self) -> Iterator[NavEvent]:
         """Re-localize after a loss, turning in place to search: prefer a verified node near the last
         good one; take a far answer only confident, within reach of where the track was last confirmed
-        (:meth:`_within_reach`) and confirmed by a second look; after a full
-        turn with neither, keep the last good node (or the last localization)."""
+        (:meth:`_within_reach`) and confirmed by a second look; after a full turn with neither, move
+        a step towards the turn's best-verified view and turn again (``recover_search_moves`` times,
+        :meth:`_search_move`); then take the best weakly verified near node of the last turn, else
+        keep the last good node (or the last localization)."""
         cfg, min_inliers = self.config, self.map.config.match.min_inliers
         near = self._near(self._last_good)
         # the localizer's ranking among the near nodes only (appearance and inliers: the node with
@@ -1162,8 +1168,10 @@ class Navigator:
         away = [n for n in self.map.nodes if n not in near]
         turned, far, found = 0.0, None, None
         best_local: tuple[int, int] | None = None  # (inliers, node) of the best weakly verified near node
+        moves, towards, most = 0, 0.0, (-1, -1, -1)  # a move to search elsewhere comes between two turns
         while found is None:
             _, q = self._look(localizing=True)
+            inliers = 0
             if near:
                 local = self.localizer.localize_query(q, exclude=away)
                 inliers = local.verification.inliers if local.verification is not None else 0
@@ -1190,8 +1198,20 @@ class Navigator:
                 self._count("far re-localizations")
                 break
             far = loc.node if confident else None
+            # the view to move towards: a near node's best verification, else any, else the most textured
+            score = (inliers, loc.inliers, len(q.features))
+            if score > most and turned < 2 * math.pi:
+                towards, most = turned, score
             if turned >= 2 * math.pi:
-                break
+                if moves >= cfg.recover_search_moves or cfg.start_search_step_m == 0:
+                    break
+                self._hold()
+                self._count("searched", math.degrees(turned))
+                self._search_move(towards - turned, "recovery search moves")
+                moves += 1
+                # what the last turn saw weakly was seen from elsewhere
+                turned, far, best_local, towards, most = 0.0, None, None, 0.0, (-1, -1, -1)
+                continue
             turned += self._scan_step()  # search: turn for scan_every_s, then look again
         self._hold()
         if turned > 0:
@@ -1265,6 +1285,8 @@ class Navigator:
             parts.append(f"backed off {t['backed off']:.0f} s toward nodes that verified well")
         if "searched" in t:
             parts.append(f"turned {t['searched']:.0f} deg in place searching")
+        if "recovery search moves" in t:
+            parts.append(f"moved {t['recovery search moves']:.0f} times to search elsewhere after turns that verified nothing")
         if "re-localizations" in t:
             parts.append(f"re-localized {t['re-localizations']:.0f} times ({t.get('far re-localizations', 0):.0f} far)")
         if "far answers out of reach" in t:
