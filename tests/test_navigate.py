@@ -1324,3 +1324,34 @@ def test_an_omni_approaches_its_goal_on_the_near_floor(taught):
     assert r.success, r.message
     assert "near floor" in r.message and ("approached on the near floor" in r.message or "docked" in r.message)
     assert r.final_position_error_m < 0.05
+
+
+def test_the_visual_gyro_measures_a_turning_disturbance_from_consecutive_images(taught):
+    """Standing still under a turning bias with no goal in view, the turn between consecutive images
+    estimates the bias (the hold then cancels it); a pair with more than one period between them is
+    not measured."""
+    from topomap.motion import STOP, wrap_angle
+
+    m, world, poses, _ = taught
+    start = goal_pose(m, poses, min(m.nodes) + 3)
+    with Simulator(world, vehicle="unicycle", disturbance="bias_omega_rps=0.2", seed=1, start_pose=start) as sim:
+        nav = Navigator(m, sim.robot, "unicycle")
+        turns = []
+        nav._look()
+        for _ in range(12):
+            before = sim.ground_truth.pose().theta
+            nav._move(STOP)
+            nav._look()
+            turned = nav._gyro_turn()
+            assert turned is not None
+            turns.append((turned, wrap_angle(sim.ground_truth.pose().theta - before)))
+            nav.servo.observer.update(0.1, STOP, None, None)
+            est = nav.servo.observe_turn(0.1, STOP, turned)
+        assert np.median([abs(a - b) for a, b in turns]) < math.radians(0.3)
+        assert est.ready and est.d_omega == pytest.approx(0.2, abs=0.04)
+        hold = nav.servo.hold_command(est)
+        assert hold.omega == pytest.approx(-est.d_omega)
+        nav._move(hold)
+        nav._move(hold)
+        nav._look()
+        assert nav._gyro_turn() is None  # two periods between the images

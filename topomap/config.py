@@ -473,11 +473,14 @@ class ObserverConfig:
     position_noise_s: float = 0.004  # std of one scaled-position measurement [lambda]
     noise_window: int = 10
     d_omega_walk: float = 0.05  # random-walk intensity of d_omega [rad/s per sqrt(s)]
+    # std of one turn rate measured between consecutive images (observe_turn): wider than what they
+    # measure (docs/servo.md), so that one such turn alone does not make the estimate `ready`
+    turn_rate_noise_rps: float = 0.15
     d_omega_max: float = 0.5  # |d_omega_hat| is clipped to this [rad/s]
     forward_walk: float = 0.02  # random-walk intensity of the forward parameters [per sqrt(s)]
 
     def __post_init__(self) -> None:
-        for name in ("heading_noise_rad", "position_noise_s", "d_omega_walk", "d_omega_max", "forward_walk"):
+        for name in ("heading_noise_rad", "position_noise_s", "d_omega_walk", "turn_rate_noise_rps", "d_omega_max", "forward_walk"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"observer {name}={getattr(self, name)} must be positive")
         if isinstance(self.noise_window, bool) or not isinstance(self.noise_window, int) or self.noise_window < 0:
@@ -796,6 +799,10 @@ class NavigateConfig:
     # time_budget_base_s (0 disables: one turn, then fail)
     start_search_step_m: float = 0.6
     start_search_speed_mps: float = 0.15
+    # Blind servo periods measure the turn between the last two images (a visual gyro: no goal need
+    # be in view) and correct the observer's d_omega with it, so that holding still while blind
+    # cancels a turning disturbance the goal's images have not shown yet (e.g. after a re-plan).
+    visual_gyro: bool = True
     scan_turn_rps: float = 0.5  # turning rate while scanning for a place to localize [rad/s]
     scan_every_s: float = 0.6  # localize attempts while scanning [s]
     time_budget_base_s: float = 60.0  # the whole navigation may last this [s] ...

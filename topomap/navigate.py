@@ -121,7 +121,7 @@ from topomap.errors import NoRouteError
 from topomap.features import Features
 from topomap.graph import EdgeKind, TopoMap
 from topomap.localize import Localization, Localizer, Query
-from topomap.matching import Verification, scene_scale, verify
+from topomap.matching import Verification, match_descriptors, scene_scale, verify
 from topomap.motion import STOP, Command, VehicleKind, vehicle_kind, wrap_angle
 from topomap.plan import Planner, Route
 from topomap.relative_motion import SCALE_CLIP_FACTOR, KeyframePairs
@@ -168,6 +168,10 @@ class RobotLike(Protocol):
     def render(self) -> np.ndarray: ...
 
     def apply(self, command: Command, dt: float) -> object: ...
+
+
+#: Matches whose azimuth change lies within this of the median turn agree on it (~3 px at 160 px wide).
+GYRO_AGREEMENT_RAD = math.radians(1.0)
 
 
 class NavStatus(str, enum.Enum):
@@ -465,6 +469,10 @@ class Navigator:
         self._time = 0.0
         self._last_command: Command | None = None
         self._estimate = None  # the servo's latest disturbance estimate
+        # (features, periods moved by then) of the last two images: the visual gyro's pair (_gyro_turn)
+        self._latest_look: tuple[Features, int] | None = None
+        self._servo_time: float | None = None  # time of the servo's last step [s]
+        self._previous_look: tuple[Features, int] | None = None
         self._here: int | None = None  # the node the robot was last localized at
         self._approach_side: float | None = None  # side of the subgoal camera the robot comes from
         self._subgoal_floor_m: deque[float] = deque(maxlen=SWITCH_FLOOR_PERIODS)  # the floor's distance to the subgoal [m]
@@ -509,7 +517,33 @@ class Navigator:
     def _look(self, localizing: bool = False) -> tuple[np.ndarray, Query]:
         image = self.robot.render()
         # the vocabulary words only serve global localization, not the servo's matching each period
-        return image, self.localizer.prepare(image, words=localizing)
+        q = self.localizer.prepare(image, words=localizing)
+        self._previous_look, self._latest_look = self._latest_look, (q.features, self.outcome.steps)
+        return image, q
+
+    def _gyro_turn(self) -> float | None:
+        """The camera's turn [rad] between the last two images when exactly one period's command
+        (``_last_command``) lies between them (a visual gyro), None when it is not measured (no such
+        pair, or fewer than the geometry's ``min_inliers`` matches agreeing on one turn).
+
+        A turn about the vertical axis shifts every point's azimuth by the same angle whatever its
+        height; one period's translation adds a parallax the median ignores. Hand-written: a median
+        of azimuth differences, where a relative pose over so short a baseline confuses part of the
+        turn with a sideways step (the bas-relief ambiguity of docs/servo.md)."""
+        if self._previous_look is None or self._latest_look is None:
+            return None
+        (a, steps_a), (b, steps_b) = self._previous_look, self._latest_look
+        if steps_b != steps_a + 1 or len(a) == 0 or len(b) == 0:
+            return None
+        m = match_descriptors(b, a, self.map.config.match)
+        need = self.servo.config.geometry.min_inliers
+        if len(m) < need:
+            return None
+        turns = (np.arctan(self.camera.normalize(b.keypoints[m.ia].astype(float))[:, 0])
+                 - np.arctan(self.camera.normalize(a.keypoints[m.ib].astype(float))[:, 0]))
+        turn = float(np.median(turns))
+        agree = np.abs(turns - turn) < GYRO_AGREEMENT_RAD
+        return float(np.median(turns[agree])) if agree.sum() >= need else None
 
     def _move(self, command: Command, trail: bool = False) -> bool:
         """Apply ``command`` for one period; returns whether the robot's bumper reported contact
@@ -899,6 +933,9 @@ class Navigator:
                     self._count("final approaches on the near floor")
                 else:
                     dock = None
+            if self._servo_time is not None:  # periods driven without the servo (turns, moves) since its last step
+                self.servo.age(self._time - self._servo_time - cfg.control_period_s)
+            self._servo_time = self._time
             # approaching on the near floor, the features steer where they lie within floor_approach_gate_m of
             # it (finer on a good view; the floor's own error reaches ~0.05 m); after a refusal or a hold the floor steers
             s = self.servo.step(cur_px, goal_px, self.camera, cfg.control_period_s, self._last_command,
@@ -916,6 +953,8 @@ class Navigator:
             yield NavEvent(EventKind.STEP, self._time, s.status.value, subgoal=sub, route=tuple(nodes), servo=s,
                            command=s.command, image=image, matches=(cur_px, goal_px))
             self._estimate = s.disturbance
+            if s.status is ServoStatus.LOST and cfg.visual_gyro:  # no goal heading: the turn between images
+                self._estimate = self.servo.observe_turn(cfg.control_period_s, self._last_command, self._gyro_turn())
             leg.seen = leg.seen or s.status is not ServoStatus.LOST
             if v.inliers >= cfg.switch_min_inliers and s.status is not ServoStatus.LOST:
                 self._last_good = sub

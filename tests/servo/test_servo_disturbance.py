@@ -165,3 +165,51 @@ def test_config_is_validated():
         ObserverConfig(heading_noise_rad=0.0)
     with pytest.raises(ConfigError, match="whole number"):
         ObserverConfig(noise_window=-1)
+
+
+def test_turns_between_images_estimate_d_omega_without_any_goal_in_view():
+    """The visual gyro: a fresh observer that never saw a goal learns a turning bias from the turns
+    measured between consecutive images, one measurement alone does not make it ready, and a turn
+    that disagrees wildly (a wrong reconstruction) is ignored."""
+    rng = np.random.default_rng(3)
+    obs, hold = DisturbanceObserver(), Command()
+    est = obs.update(0.1, hold, None, None)
+    est = obs.observe_turn(0.1, hold, (0.0 + 0.25) * 0.1 + rng.normal(0, 0.003))
+    assert not est.ready and math.isnan(est.theta)
+    for _ in range(15):
+        obs.update(0.1, hold, None, None)
+        est = obs.observe_turn(0.1, hold, 0.25 * 0.1 + rng.normal(0, 0.003))
+    assert est.ready and est.d_omega == pytest.approx(0.25, abs=0.05) and math.isnan(est.theta)
+    turning = Command(0.0, 0.0, 0.5)  # the commanded turn is not the disturbance
+    for _ in range(10):
+        obs.update(0.1, turning, None, None)
+        est = obs.observe_turn(0.1, turning, (0.5 + 0.25) * 0.1 + rng.normal(0, 0.003))
+    assert est.d_omega == pytest.approx(0.25, abs=0.05)
+    obs.update(0.1, hold, None, None)
+    assert obs.observe_turn(0.1, hold, 1.5).d_omega == pytest.approx(est.d_omega, abs=1e-9)
+    assert obs.observe_turn(0.1, hold, None).d_omega == pytest.approx(est.d_omega, abs=1e-9)
+
+
+def test_a_known_disturbance_stays_ready_across_a_new_goal_until_blindness_makes_it_stale():
+    """A new goal without a heading prior keeps the disturbance it knew (the hold cancels it while the
+    new goal is not in view yet); blind for long, its random walk makes the estimate unready."""
+    _, obs = run_heading(0.1, 0.0)
+    obs.reset_target()
+    est = obs.update(0.1, Command(), None, None)
+    assert math.isnan(est.theta) and est.ready and est.d_omega == pytest.approx(0.1, abs=0.015)
+    for _ in range(100):  # 10 s without any image of a goal
+        est = obs.update(0.1, Command(), None, None)
+    assert not est.ready
+
+
+def test_time_without_updates_ages_the_estimate():
+    """Seconds spent on other commands (a search turn) make the estimate less certain, not different."""
+    _, obs = run_heading(0.1, 0.0)
+    before = obs.estimate
+    obs.age(0.0)
+    obs.age(math.nan)
+    assert obs.estimate == before
+    obs.age(10.0)
+    after = obs.estimate
+    assert before.ready and not after.ready
+    assert (after.d_omega, after.theta, after.kappa) == (before.d_omega, before.theta, before.kappa)

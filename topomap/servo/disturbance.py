@@ -163,8 +163,11 @@ class DisturbanceObserver:
         the measured relative heading ``theta`` [rad] and scaled position ``position_s`` (2,) (None
         when the images did not give them)."""
         cfg = self.cfg
+        if not self._has_theta or self._prior_only:
+            if dt > 0:  # no measured heading to lean on: the disturbance's walk goes on all the same
+                self._P[1, 1] += cfg.d_omega_walk**2 * dt
         if self._prior_only and applied is not None and dt > 0:
-            # a predicted heading: dead-reckoned, the covariances untouched (the first measurement
+            # a predicted heading: dead-reckoned, its covariance untouched (the first measurement
             # replaces it and then everything is as if there had been no prior)
             self._x[0] = wrap_angle(self._x[0] + (applied.omega + self._x[1]) * dt)
         elif self._has_theta and applied is not None and dt > 0:
@@ -215,6 +218,35 @@ class DisturbanceObserver:
             self._last_pos, self._last_theta = None, None
         return self.estimate
 
+    def age(self, seconds: float) -> None:
+        """``seconds`` passed without any :meth:`update` (the robot moved on other commands): the
+        disturbances walked on, so their uncertainty grows as the random walks say; estimates kept."""
+        if not (math.isfinite(seconds) and seconds > 0):
+            return
+        self._P[1, 1] += self.cfg.d_omega_walk**2 * seconds
+        self._Pp = self._Pp + np.eye(3) * (self.cfg.forward_walk * self.kappa0) ** 2 * seconds
+
+    def observe_turn(self, dt: float, applied: Command | None, turned_rad: float | None) -> DisturbanceEstimate:
+        """Correct ``d_omega`` with the turn ``turned_rad`` [rad] measured between two consecutive images
+        ``dt`` [s] apart under the command ``applied`` (a visual gyro: the two images need not show
+        any goal). Call it after :meth:`update` of the same period; a turn that disagrees with the
+        estimate by more than 5 deviations is ignored (a wrong reconstruction)."""
+        if turned_rad is None or not math.isfinite(turned_rad) or applied is None or not (dt > 0):
+            return self.estimate
+        innov = (wrap_angle(turned_rad) / dt - applied.omega) - self._x[1]
+        S = self._P[1, 1] + self.cfg.turn_rate_noise_rps**2
+        if innov * innov > 25.0 * S:
+            return self.estimate
+        K = self._P[:, 1] / S
+        if not self._has_theta:  # no heading to correct (its row of P is zero anyway)
+            K[0] = 0.0
+        self._x = self._x + K * innov
+        self._P = self._P - np.outer(K, self._P[1, :])
+        if self._has_theta:
+            self._x[0] = wrap_angle(self._x[0])
+        self._x[1] = max(-self.cfg.d_omega_max, min(self.cfg.d_omega_max, self._x[1]))
+        return self.estimate
+
     def _forward_update(self, step: np.ndarray, theta_mid: float, applied: Command, dt: float) -> None:
         cfg = self.cfg
         self._Pp = self._Pp + np.eye(3) * (cfg.forward_walk * self.kappa0) ** 2 * dt
@@ -239,7 +271,7 @@ class DisturbanceObserver:
     def estimate(self) -> DisturbanceEstimate:
         return DisturbanceEstimate(
             d_omega=float(self._x[1]),
-            d_omega_std=float(math.sqrt(max(self._P[1, 1], 0.0))) if self._has_theta else math.inf,
+            d_omega_std=float(math.sqrt(max(self._P[1, 1], 0.0))),
             theta=float(self._x[0]) if self._has_theta else math.nan,
             kappa=float(self._p[0]),
             mu_f=float(self._p[1]),

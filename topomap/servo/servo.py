@@ -246,6 +246,17 @@ class AppearanceServo:
         return ServoOutput(cmd.for_vehicle(self.vehicle), status, pose, rho_s, dist_m, theta, pose.inliers, converged, est,
                            floor_s)
 
+    def age(self, seconds: float) -> None:
+        """``seconds`` passed without a :meth:`step` (searching, backing off): the disturbance
+        estimates grow less certain (:meth:`DisturbanceObserver.age`)."""
+        self.observer.age(seconds)
+
+    def observe_turn(self, dt: float, applied: Command | None, turned_rad: float | None) -> DisturbanceEstimate:
+        """The turn measured between two consecutive images (a visual gyro), ``dt`` [s] apart under
+        ``applied``: corrects the disturbance estimate while no goal is in view
+        (:meth:`DisturbanceObserver.observe_turn`); returns the estimate."""
+        return self.observer.observe_turn(dt, applied, turned_rad)
+
     def reacquire_command(self, est: DisturbanceEstimate) -> Command:
         """While blind: hold position (:meth:`hold_command`) and turn in place toward the goal's
         heading as the observer dead-reckons it (commanded turns and the estimated d_omega since the
