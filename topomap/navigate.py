@@ -170,7 +170,7 @@ class RobotLike(Protocol):
     def apply(self, command: Command, dt: float) -> object: ...
 
 
-#: Matches whose azimuth change lies within this of the median turn agree on it (~3 px at 160 px wide).
+#: Matches whose azimuth change lies within this of the median turn agree on it (~2.4 px at 160 px, 60 deg wide).
 GYRO_AGREEMENT_RAD = math.radians(1.0)
 
 
@@ -471,8 +471,8 @@ class Navigator:
         self._estimate = None  # the servo's latest disturbance estimate
         # (features, periods moved by then) of the last two images: the visual gyro's pair (_gyro_turn)
         self._latest_look: tuple[Features, int] | None = None
-        self._servo_time: float | None = None  # time of the servo's last step [s]
         self._previous_look: tuple[Features, int] | None = None
+        self._servo_time: float | None = None  # time of the servo's last step [s]
         self._here: int | None = None  # the node the robot was last localized at
         self._approach_side: float | None = None  # side of the subgoal camera the robot comes from
         self._subgoal_floor_m: deque[float] = deque(maxlen=SWITCH_FLOOR_PERIODS)  # the floor's distance to the subgoal [m]

@@ -237,13 +237,10 @@ class DisturbanceObserver:
         S = self._P[1, 1] + self.cfg.turn_rate_noise_rps**2
         if innov * innov > 25.0 * S:
             return self.estimate
-        K = self._P[:, 1] / S
-        if not self._has_theta:  # no heading to correct (its row of P is zero anyway)
-            K[0] = 0.0
+        K = self._P[:, 1] / S  # K[0] = 0 while no heading is held: P's heading row is zero then
         self._x = self._x + K * innov
         self._P = self._P - np.outer(K, self._P[1, :])
-        if self._has_theta:
-            self._x[0] = wrap_angle(self._x[0])
+        self._x[0] = wrap_angle(self._x[0])  # (a NaN heading stays NaN)
         self._x[1] = max(-self.cfg.d_omega_max, min(self.cfg.d_omega_max, self._x[1]))
         return self.estimate
 
