@@ -141,6 +141,21 @@ def test_laws_are_pure():
     assert first == again and state == LawState(integral=(0.01, 0.0), aligning=True, reverse=False)
 
 
+@pytest.mark.parametrize("x_m, z_m", [(0.2, 0.2), (0.24, 0.1)])
+def test_a_unicycle_that_overshoots_while_aligning_backs_up_instead_of_turning_around(x_m, z_m):
+    # past the goal, beyond the undock radius but inside the approach's reverse band: with that
+    # hysteresis alone the law drove forward and turned around (alpha = pi), losing the goal's view
+    lam0 = CFG.nominal_scale_m
+    assert math.hypot(x_m, z_m) > CFG.undock_radius_m > x_m
+    x, z, th, state, widest = x_m, z_m, 0.0, LawState(aligning=True, reverse=False), 0.0
+    for _ in range(100):  # kinematic unicycle in the goal frame, heading (cos th, sin th)
+        cmd, state = unicycle_law(x / lam0, z / lam0, th, CFG, state, 0.1)
+        x, z, th = x + 0.1 * cmd.v_f * math.cos(th), z + 0.1 * cmd.v_f * math.sin(th), th + 0.1 * cmd.omega
+        widest = max(widest, abs(th))
+    assert math.degrees(widest) < 90.0
+    assert math.hypot(x, z) < 0.05
+
+
 def test_integral_state_is_passed_in_and_returned():
     state = LawState()
     for _ in range(10):

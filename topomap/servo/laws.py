@@ -132,7 +132,8 @@ def unicycle_law(
     ``scale_free`` with ``kappa_hat, mu_hat`` from the observer). A vehicle in front of the goal (``x > 0``) backs into it:
     the same law applied to the reversed vehicle, whose pose in the reversed goal frame is
     ``(-x, -z, theta)``, with ``v`` negated — otherwise an overshoot would make Aicardi turn around
-    (``alpha = pi``). Inside ``dock_radius_m`` (estimated, ``lambda_0 rho_s``) the bearing of the goal
+    (``alpha = pi``). The side is chosen with hysteresis during the approach, and afresh on every
+    step spent aligning: a vehicle that overshoots while aligning leaves alignment backing up. Inside ``dock_radius_m`` (estimated, ``lambda_0 rho_s``) the bearing of the goal
     is undefined at the scale of the measurement noise, so the vehicle aligns its heading:
     ``omega = -k_theta theta - d_omega_hat`` while ``v = k_p eps`` regulates the along-track error.
     Integral action on ``eps`` (``compensate``) learns the forward disturbance (docs/theory.md section 3:
@@ -144,7 +145,7 @@ def unicycle_law(
     lam0 = cfg.nominal_scale_m
     band = cfg.undock_radius_m
     reverse = state.reverse
-    if reverse is None:
+    if reverse is None or state.aligning:  # leaving alignment past the goal backs into it, not turns around
         reverse = x_s > 0
     elif reverse and lam0 * x_s < -band:
         reverse = False
