@@ -515,6 +515,33 @@ def test_a_floor_never_matched_over_a_whole_window_does_not_block_arrival():
     assert not _Settle(cfg, floor_required=True).floor_unmeasurable()  # no window yet
 
 
+def test_a_window_spent_driving_toward_the_goal_does_not_judge_its_floor():
+    """Fresh world 328 ep 0: the final leg's window began 7.8 m from the goal; 37 s of driving up to
+    it, where no floor matches, made the floor "unmeasurable" 3 s after arriving, and the robot
+    "arrived" 0.35 m beside its goal. Only a window spent mostly at the goal judges its floor."""
+    import types
+
+    from topomap.config import NavigateConfig
+    from topomap.navigate import _Settle
+
+    cfg = NavigateConfig()
+    period = cfg.control_period_s
+    far = types.SimpleNamespace(converged=False, position_error_m=5.0, heading_error_rad=0.0)
+    near = types.SimpleNamespace(converged=True, position_error_m=0.02, heading_error_rad=0.0)
+    s = _Settle(cfg, floor_required=True, patient=False)
+    driving = int(0.9 * cfg.settle_patience_s / period)
+    for k in range(driving):
+        assert s.update(k * period, far, False, lambda: False) is None
+    arrived_at = None
+    for k in range(driving, driving + int(cfg.settle_patience_s / period)):
+        if s.update(k * period, near, True, lambda: True) is not None:
+            arrived_at = k * period
+            break
+    # not 0.1 of a window after reaching the goal, but once half of the window was spent there
+    assert arrived_at is not None
+    assert arrived_at - driving * period == pytest.approx(0.5 * cfg.settle_patience_s, abs=2 * period)
+
+
 def test_a_sparse_floor_is_judged_once_fifteen_readings_accumulate():
     """Fresh world 237 ep 8: a unicycle held 0.02-0.13 m from its goal for 140 s and timed out. The
     floor was required and read in one frame in five (median 0.09 m): never half of a 3-s window, so
@@ -1274,6 +1301,36 @@ def test_the_near_floor_refuses_an_arrival_beside_the_goal(taught):
             assert leg.near_floor_m is None  # the map loaded without images: no alignment, no refusal
         else:
             assert leg.near_floor_m == pytest.approx(near_m, abs=0.05)
+
+
+def test_the_near_floor_refuses_from_further_away_than_it_steers(taught):
+    """Fresh world 328 ep 0 (unicycle): 0.35 m beside and ahead of its goal down a corridor, the servo
+    and the image agreed it had arrived; the near floor measured 0.34 m, but at a correlation of 0.87,
+    under the 0.9 an alignment needs to steer — the correlation falls as the view moves away from the
+    keyframe's, so the steering threshold let the floor refuse only close to the goal. To refuse, the
+    looser ``floor_refuse_min_ncc`` suffices; with the steering threshold these arrivals stood."""
+    import dataclasses
+    import functools
+    from types import SimpleNamespace
+
+    from topomap.config import NavigateConfig
+    from topomap.store import load_node_image
+
+    m, world, poses, path = taught
+    goal = sorted(m.nodes)[52]
+    x, z, th = goal_pose(m, poses, goal)
+    servo_says = SimpleNamespace(heading_error_rad=0.0)
+    cfg = NavigateConfig()
+    for ahead, left in ((0.2, 0.3), (0.2, -0.3), (-0.3, 0.0)):  # correlations 0.83-0.87 on this map
+        pose = (x + ahead * math.cos(th) - left * math.sin(th), z + ahead * math.sin(th) + left * math.cos(th), th)
+        for config, refused in ((cfg, True), (dataclasses.replace(cfg, floor_refuse_min_ncc=cfg.floor_align_min_ncc), False)):
+            with Simulator(world, vehicle="unicycle", start_pose=pose) as sim:
+                nav = Navigator(m, sim.robot, "unicycle", config=dataclasses.replace(config, camera_height_m=sim.camera_height_m),
+                                keyframe_image=functools.partial(load_node_image, path))
+                leg = nav._start_leg([goal])
+                assert nav._near_floor_refuses(leg, "precise", None, sim.robot.render(), servo_says) is refused, (ahead, left)
+            if refused:
+                assert leg.near_floor_m == pytest.approx(math.hypot(ahead, left), abs=0.05)
 
 
 def test_an_omni_docks_closer_on_the_near_floor_within_the_bound(taught):

@@ -687,6 +687,10 @@ class NavigateConfig:
     arrive_floor_align: bool = True
     floor_align_min_ncc: float = 0.9
     floor_align_min_peak: float = 0.015
+    # To refuse an arrival (the safe direction) an alignment needs only floor_refuse_min_ncc: the
+    # correlation falls with the distance the view moved (docs/navigation.md, "The near floor refuses
+    # from further away"), so the steering threshold let the floor refuse only where no refusal was needed.
+    floor_refuse_min_ncc: float = 0.8
     # Within the bound, an arrival the near floor puts floor_dock_target_m or more away (the servo's own
     # convergence tolerance, position_tol_m, now measured by the better witness) is held back too: the
     # servo docks on the floor's pose, for at most floor_dock_patience_s, and the next arrival within
@@ -840,6 +844,8 @@ class NavigateConfig:
             raise ConfigError("navigate arrive_floor_min_readings must be at least 1")
         if not -1 <= self.floor_align_min_ncc <= 1 or not 0 <= self.floor_align_min_peak <= 2:
             raise ConfigError("navigate floor_align_min_ncc must lie in [-1, 1] and floor_align_min_peak in [0, 2]")
+        if not -1 <= self.floor_refuse_min_ncc <= self.floor_align_min_ncc:
+            raise ConfigError("navigate floor_refuse_min_ncc must lie in [-1, floor_align_min_ncc]")
         if (self.floor_dock_target_m is not None and not self.floor_dock_target_m > 0) or not self.floor_dock_patience_s >= 0:
             raise ConfigError("navigate floor_dock_target_m must be positive (or None) and floor_dock_patience_s >= 0")
         if not self.floor_approach_gate_m >= 0:

@@ -334,11 +334,19 @@ class _Settle:
         return True if self.floor_unmeasurable() else None
 
     def floor_unmeasurable(self) -> bool:
-        """The last ``settle_patience_s`` at the goal (a whole window of history) resolved the floor
-        fewer than ``arrive_floor_min_readings`` times: the floor this keyframe shows is not matched."""
+        """The last ``settle_patience_s`` at the goal (a whole window of history, on at least half of
+        whose periods the servo put the goal within ``settle_patience_max_m``) resolved the floor fewer
+        than ``arrive_floor_min_readings`` times: the floor this keyframe shows is not matched. Periods
+        spent driving up to the goal do not count: from metres away no floor matches (fresh world 328
+        ep 0 drove 37 s of its 40 toward its goal, then "arrived" 0.35 m beside it)."""
         cfg = self.config
         if not self.history or self.history[-1][0] - self.history[0][0] < cfg.settle_patience_s:
             return False
+        now = self.history[-1][0]
+        dist = np.array([h[1] for h in self.history if h[0] >= now - cfg.settle_patience_s])
+        with np.errstate(invalid="ignore"):
+            if np.count_nonzero(dist <= cfg.settle_patience_max_m) < 0.5 * dist.size:
+                return False
         return int(np.isfinite(self._floor_readings(cfg.settle_patience_s)).sum()) < cfg.arrive_floor_min_readings
 
     def floor_scale(self, scale_m: float) -> float | None:
@@ -839,19 +847,21 @@ class Navigator:
         return self._floor_aligners[node]
 
     def _aligned_floor(self, node: int, image: np.ndarray, heading_rad: float,
-                       near: FloorAlignment | None = None) -> FloorAlignment | None:
+                       near: FloorAlignment | None = None, min_ncc: float | None = None) -> FloorAlignment | None:
         """The robot's pose relative to ``node`` from its near floor in ``image``, if the alignment is
-        confident (:meth:`FloorAlignment.confident`). ``near``: last period's alignment, tracked from
-        (a small search around it; the full search where that is not confident)."""
+        confident (:meth:`FloorAlignment.confident`; at ``min_ncc``, default ``floor_align_min_ncc``).
+        ``near``: last period's alignment, tracked from (a small search around it; the full search
+        where that is not confident)."""
         aligner = self._floor_aligner(node)
         if aligner is None:
             return None
         cfg = self.config
         cam = self.robot.camera.fitted_to(image.shape[1], image.shape[0])
         theta0 = heading_rad if math.isfinite(heading_rad) else 0.0
+        min_ncc = cfg.floor_align_min_ncc if min_ncc is None else min_ncc
         for around in ((near, None) if near is not None else (None,)):
             a = aligner.align(image, cam, theta0, near=around)
-            if a is not None and a.confident(cfg.floor_align_min_ncc, cfg.floor_align_min_peak):
+            if a is not None and a.confident(min_ncc, cfg.floor_align_min_peak):
                 return a
         return None
 
@@ -863,12 +873,15 @@ class Navigator:
         tell a sideways step from a turn: the robot stood 0.26-0.33 m beside its goal, "arrived"
         (fresh worlds 289 ep 8, 286 ep 9). A refusal starts a fresh settle, docking on the floor's pose."""
         cfg = self.config
-        near = dock if dock is not None else self._aligned_floor(leg.nodes[-1], image, s.heading_error_rad)
+        near = dock if dock is not None else self._aligned_floor(leg.nodes[-1], image, s.heading_error_rad,
+                                                                  min_ncc=cfg.floor_refuse_min_ncc)
         if near is None:
             leg.near_floor_m = None
             return False
         leg.near_floor_m = near.distance_h * self._camera_height_m
         bound = cfg.arrive_floor_max_m if arrived == "precise" else cfg.settle_patience_max_m
+        if leg.near_floor_m < bound and near.ncc < cfg.floor_align_min_ncc:
+            return False  # an alignment below the steering threshold may refuse, never steer
         if leg.near_floor_m < bound:
             # within the bound: an omni docks closer on the floor's pose while floor_dock_patience_s lasts
             # (a unicycle's sideways docking turns it until the keyframe's near floor leaves the view)
