@@ -78,6 +78,23 @@ def test_a_plain_floor_is_not_aligned(scene):
     assert aligner.align(plain, camera) is None
 
 
+def test_a_plain_current_floor_scores_no_agreement(scene):
+    """A textured keyframe floor against a current image whose floor is plain (paint, a saturated
+    patch): the correlation of a flat patch is rounding error over rounding error, and read millions
+    on plain office floors (tuning world 256), a "confident" alignment anywhere. It scores nothing."""
+    renderer, camera = scene
+    aligner = FloorAligner(renderer.render(Pose(*GOAL)), camera)
+    image = renderer.render(_at(0.0, 0.1, 0.0)).copy()
+    image[camera.height // 2 + 10:] = 97  # the near floor painted over
+    poses = np.array([[0.0, dx, dz] for dx in (-0.2, 0.0, 0.2) for dz in (-0.2, 0.0, 0.2)])
+    from topomap.servo.floor import GRID_STEP_PX, _grey
+
+    score, _ = aligner._ncc(poses, _grey(image), camera, GRID_STEP_PX)
+    assert np.all(score <= 1.0) and np.all(score < 0.5)
+    a = aligner.align(image, camera)
+    assert a is None or (a.ncc <= 1.0 and not a.confident(0.8, 0.015))
+
+
 def test_another_place_does_not_align_confidently(scene):
     """The floor of a keyframe 3 m back and turned away is not where the camera stands: whatever pose
     the search ends at, it is not a confident one that puts the robot at the goal."""
