@@ -136,11 +136,12 @@ class FloorAligner:
         saa, sbb, sab = (w * a * a) @ onehot, (w * b * b) @ onehot, (w * a * b) @ onehot
         nn = np.maximum(n, 1.0)
         cov = sab - sa * sb / nn
-        var_b = np.maximum(sbb - sb * sb / nn, 0.0)
-        var = np.maximum(saa - sa * sa / nn, 0.0) * var_b
-        # a plain patch of the current image agrees with nothing: its variance is rounding error, and
-        # so is the covariance, whose ratio read millions on plain office floors
-        flat = var_b < (MIN_TEXTURE / 4.0) ** 2 * nn
+        var_a, var_b = np.maximum(saa - sa * sa / nn, 0.0), np.maximum(sbb - sb * sb / nn, 0.0)
+        var = var_a * var_b
+        # a plain patch (of the current image, or of the keyframe where the current one overlaps it)
+        # agrees with nothing: its variance is rounding error, and so is the covariance, whose ratio
+        # read millions on plain office floors
+        flat = np.minimum(var_a, var_b) < (MIN_TEXTURE / 4.0) ** 2 * nn
         ncc = np.where(flat, 0.0, np.clip(cov / np.sqrt(np.where(flat, 1.0, var)), -1.0, 1.0))
         valid = (n >= MIN_TILE_SAMPLES * (GRID_STEP_PX / step) ** 2) & self._textured_tiles[step][None]
         ncc = np.where(valid, ncc, -np.inf)
