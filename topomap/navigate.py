@@ -286,9 +286,12 @@ class _Settle:
     def _floor_readings(self, window_s: float | None) -> np.ndarray:
         """The floor distances measured over the last ``window_s`` (default the settle window), NaN
         where a frame measured none [m]."""
+        return self._recent(3, self.config.settle_window_s if window_s is None else window_s)
+
+    def _recent(self, column: int, window_s: float) -> np.ndarray:
+        """Column ``column`` of :attr:`history` over its last ``window_s``."""
         now = self.history[-1][0]
-        window_s = self.config.settle_window_s if window_s is None else window_s
-        return np.array([h[3] for h in self.history if h[0] >= now - window_s])
+        return np.array([h[column] for h in self.history if h[0] >= now - window_s])
 
     def floor_distance(self, window_s: float | None = None) -> float:
         """Median distance the floor measured over the last ``window_s`` (default the settle window)
@@ -342,11 +345,9 @@ class _Settle:
         cfg = self.config
         if not self.history or self.history[-1][0] - self.history[0][0] < cfg.settle_patience_s:
             return False
-        now = self.history[-1][0]
-        dist = np.array([h[1] for h in self.history if h[0] >= now - cfg.settle_patience_s])
-        with np.errstate(invalid="ignore"):
-            if np.count_nonzero(dist <= cfg.settle_patience_max_m) < 0.5 * dist.size:
-                return False
+        dist = self._recent(1, cfg.settle_patience_s)
+        if np.count_nonzero(dist <= cfg.settle_patience_max_m) < 0.5 * dist.size:  # NaN: blind, not near
+            return False
         return int(np.isfinite(self._floor_readings(cfg.settle_patience_s)).sum()) < cfg.arrive_floor_min_readings
 
     def floor_scale(self, scale_m: float) -> float | None:
@@ -371,7 +372,7 @@ class _Settle:
         now = history[-1][0]
         if now - history[0][0] < window_s:
             return False
-        dist = np.array([h[1] for h in history if h[0] >= now - window_s])
+        dist = self._recent(1, window_s)
         ok = np.isfinite(dist)
         if ok.mean() < SETTLE_MIN_VALID_FRACTION:
             # blind on a fifth of a whole window's periods or more: the medians would read noise, and a
@@ -880,9 +881,9 @@ class Navigator:
             return False
         leg.near_floor_m = near.distance_h * self._camera_height_m
         bound = cfg.arrive_floor_max_m if arrived == "precise" else cfg.settle_patience_max_m
-        if leg.near_floor_m < bound and near.ncc < cfg.floor_align_min_ncc:
-            return False  # an alignment below the steering threshold may refuse, never steer
         if leg.near_floor_m < bound:
+            if near.ncc < cfg.floor_align_min_ncc:
+                return False  # an alignment below the steering threshold may refuse, never steer
             # within the bound: an omni docks closer on the floor's pose while floor_dock_patience_s lasts
             # (a unicycle's sideways docking turns it until the keyframe's near floor leaves the view)
             target = cfg.floor_dock_target_m if self.vehicle is VehicleKind.OMNI else None
