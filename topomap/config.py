@@ -478,11 +478,17 @@ class ObserverConfig:
     turn_rate_noise_rps: float = 0.15
     d_omega_max: float = 0.5  # |d_omega_hat| is clipped to this [rad/s]
     forward_walk: float = 0.02  # random-walk intensity of the forward parameters [per sqrt(s)]
+    # A new goal's first measured heading further than this from its predicted heading (the
+    # previous goal's composed with the two keyframes') is a wrong reconstruction, up to three in a
+    # row, and the prediction stays (None: the first measurement always replaces it) [deg]
+    prior_gate_deg: float | None = 30.0
 
     def __post_init__(self) -> None:
         for name in ("heading_noise_rad", "position_noise_s", "d_omega_walk", "turn_rate_noise_rps", "d_omega_max", "forward_walk"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"observer {name}={getattr(self, name)} must be positive")
+        if self.prior_gate_deg is not None and not 0 < self.prior_gate_deg <= 180:
+            raise ConfigError(f"observer prior_gate_deg={self.prior_gate_deg} must lie in (0, 180] or be None")
         if isinstance(self.noise_window, bool) or not isinstance(self.noise_window, int) or self.noise_window < 0:
             raise ConfigError(f"observer noise_window={self.noise_window!r} must be a whole number >= 0")
 

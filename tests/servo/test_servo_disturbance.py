@@ -55,11 +55,39 @@ def test_a_heading_prior_is_dead_reckoned_then_replaced_by_the_first_measurement
     for _ in range(10):  # blind: 1 s turning at -0.5 rad/s under d_omega 0.1
         est = obs.update(0.1, Command(0.0, 0.0, -0.5), None, None)
     assert est.theta == pytest.approx(0.7 + (-0.5 + 0.1) * 1.0, abs=0.02)
-    est = obs.update(0.1, Command(), -0.9, None)  # the real heading, far from the prediction
-    assert est.theta == pytest.approx(-0.9)  # replaced, not averaged and not gated away
+    predicted = est.theta
+    for _ in range(3):  # the real heading, 69 deg from the prediction: taken for a wrong reconstruction ...
+        est = obs.update(0.1, Command(), -0.9, None)
+        predicted += 0.1 * 0.1  # dead-reckoned under d_omega
+        assert est.theta == pytest.approx(predicted, abs=0.02) and est.rejected > 0
+    est = obs.update(0.1, Command(), -0.9, None)  # ... until it persists: then it replaces the prediction
+    assert est.theta == pytest.approx(-0.9)  # replaced, not averaged
     assert est.d_omega == pytest.approx(0.1, abs=0.015)  # the prior's error is not a disturbance
     obs.reset_target(theta_prior=math.nan)
     assert math.isnan(obs.estimate.theta)
+
+
+def test_a_wrong_first_reconstruction_does_not_replace_the_heading_prior():
+    """Held-out world 323 ep 7 (omni, a curtained wall 1.5 m ahead): at a switch the new subgoal's
+    first pose, from 24 inliers on a repeating texture, put the heading at -45 deg where the
+    prediction (and the truth) said 0-3; it replaced the prediction, the servo went blind the next
+    period, and the blind hold turned the robot 40 deg "back" to a goal it had been facing, out of
+    every view. A first measurement beyond ``prior_gate_deg`` of the prediction is now rejected (up to
+    three in a row) and the prediction dead-reckoned on; one within the gate replaces it as before."""
+    _, obs = run_heading(0.1, 0.0)
+    obs.reset_target(theta_prior=0.05)
+    est = obs.update(0.1, Command(), math.radians(-45.0), None)
+    assert est.theta == pytest.approx(0.05 + 0.1 * 0.1, abs=0.005) and est.rejected == 1
+    est = obs.update(0.1, Command(0.0, 0.0, -0.1), None, None)  # blind: still the prediction, dead-reckoned
+    assert est.theta == pytest.approx(0.06, abs=0.005)
+    est = obs.update(0.1, Command(), math.radians(8.0), None)  # a plausible view: it replaces the prediction
+    assert est.theta == pytest.approx(math.radians(8.0)) and est.rejected == 0
+    ungated = DisturbanceObserver(ObserverConfig(prior_gate_deg=None))
+    ungated.reset_target(theta_prior=0.05)
+    assert ungated.update(0.1, Command(), math.radians(-45.0), None).theta == pytest.approx(math.radians(-45.0))
+    for bad in (0.0, 181.0):
+        with pytest.raises(ConfigError):
+            ObserverConfig(prior_gate_deg=bad)
 
 
 def test_a_prior_changes_nothing_once_the_goal_is_seen():

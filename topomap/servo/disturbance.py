@@ -137,7 +137,9 @@ class DisturbanceObserver:
         ``theta_prior``: the heading relative to the new goal predicted without its image (e.g. the
         heading relative to the previous goal composed with the two goal images' relative heading).
         It is dead-reckoned like a measured one until the first measurement, which replaces it
-        (it never updates d_omega: its error is not the disturbance's)."""
+        (it never updates d_omega: its error is not the disturbance's) — unless that measurement
+        lies beyond ``ObserverConfig.prior_gate_deg`` of it: a wrong reconstruction, until three in
+        a row say so."""
         self._has_theta = False
         self._x[0] = math.nan
         self._P[0, :] = self._P[:, 0] = 0.0
@@ -180,7 +182,10 @@ class DisturbanceObserver:
                                 if measured and self._last_heading is not None and applied is not None else None)
         self._last_heading = float(theta) if measured else None
         R = self._heading_noise.variance(cfg.heading_noise_rad**2)
-        if measured:
+        gate = math.radians(cfg.prior_gate_deg) if cfg.prior_gate_deg is not None else math.inf
+        if measured and self._prior_only and abs(wrap_angle(theta - self._x[0])) > gate and self._rejected < 3:
+            self._rejected += 1  # a first reconstruction far from the prediction: wrong, until it persists
+        elif measured:
             if not self._has_theta or self._prior_only:
                 self._prior_only = False
                 self._x[0] = theta
