@@ -72,6 +72,9 @@ class DisturbanceEstimate:
 SECOND_DIFFERENCE_TO_STD = 0.6053
 #: ... and a 2-D point (per axis; the median length of a 2-D Gaussian is 1.1774 deviations: 1 / (1.1774 sqrt 6)).
 SECOND_DIFFERENCE_TO_STD_2D = 0.3467
+#: Headings rejected in a row as wrong reconstructions (gated by the filter or by a new goal's prior)
+#: before the next one is believed: the reference really moved.
+MAX_REJECTED = 3
 
 
 class _NoiseMeter:
@@ -183,7 +186,7 @@ class DisturbanceObserver:
         self._last_heading = float(theta) if measured else None
         R = self._heading_noise.variance(cfg.heading_noise_rad**2)
         gate = math.radians(cfg.prior_gate_deg) if cfg.prior_gate_deg is not None else math.inf
-        if measured and self._prior_only and abs(wrap_angle(theta - self._x[0])) > gate and self._rejected < 3:
+        if measured and self._prior_only and abs(wrap_angle(theta - self._x[0])) > gate and self._rejected < MAX_REJECTED:
             self._rejected += 1  # a first reconstruction far from the prediction: wrong, until it persists
         elif measured:
             if not self._has_theta or self._prior_only:
@@ -196,8 +199,8 @@ class DisturbanceObserver:
             else:
                 innov = wrap_angle(theta - self._x[0])
                 S = self._P[0, 0] + R
-                if innov * innov > 25.0 * S and self._rejected < 3:
-                    self._rejected += 1  # a wrong reconstruction; after 3 in a row, believe it
+                if innov * innov > 25.0 * S and self._rejected < MAX_REJECTED:
+                    self._rejected += 1  # a wrong reconstruction; after MAX_REJECTED in a row, believe it
                 else:
                     if innov * innov > 25.0 * S:  # persistent: the reference really moved
                         self._x[0] = theta
